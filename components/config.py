@@ -1,0 +1,187 @@
+"""Typed, validated configuration: ``params.yaml`` parsed once into frozen objects.
+
+Every knob of the pipeline lives in ``params.yaml`` (the default profile) or a second params file
+(``profiles/paper.yaml``); this module is its only reader. An unknown key, a missing key or a bad
+value raises :class:`ConfigError` naming the file and the dotted key.
+
+Sections are owned by the components that use them; each is a small pydantic model here so that one
+file shows every setting and its meaning.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from components import weather
+
+__all__ = ["ConfigError", "Params", "load_params", "PROJECT_ROOT"]
+
+#: The repository root (where ``params.yaml`` and ``dvc.yaml`` live).
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+
+
+class ConfigError(ValueError):
+    """A params file is unreadable, has an unknown or missing key, or a bad value."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+PositiveInt = Annotated[int, Field(gt=0)]
+NonNegativeInt = Annotated[int, Field(ge=0)]
+
+
+class CarlaConfig(_Section):
+    """Connection and scene settings of the CARLA backend (``simulator.backend: carla``)."""
+
+    host: str = "127.0.0.1"
+    port: Annotated[int, Field(gt=0, lt=65536)] = 2000
+    timeout_s: Annotated[float, Field(gt=0)] = 10.0
+    #: maps drawn from by the scene seed; empty = every map the server offers
+    maps: tuple[str, ...] = ()
+    fixed_delta_seconds: Annotated[float, Field(gt=0, le=0.1)] = 0.05
+    #: ticks between setting the weather and capturing (auto-exposure settles)
+    settle_ticks: PositiveInt = 10
+    traffic_manager_port: Annotated[int, Field(gt=0, lt=65536)] = 8000
+    max_vehicles: NonNegativeInt = 15
+    max_pedestrians: NonNegativeInt = 10
+
+
+class SimulatorConfig(_Section):
+    """Which simulator renders the data, and at what resolution (pixels)."""
+
+    backend: Literal["procedural", "carla"] = "procedural"
+    height: PositiveInt = 128
+    width: PositiveInt = 128
+    carla: CarlaConfig = CarlaConfig()
+
+
+class RunnerConfig(_Section):
+    """The Prefect task runner of fan-out flows: threads, processes, or a Dask cluster."""
+
+    kind: Literal["threads", "processes", "dask"] = "processes"
+    workers: PositiveInt = 2
+    #: address of an existing Dask scheduler (``tcp://host:8786``); null = a local cluster
+    dask_address: str | None = None
+
+
+class DataConfig(_Section):
+    """The simulated dataset: split sizes, sharding and scene reuse."""
+
+    root: str = "data"
+    #: number of images per split; the train split must cover the largest training size
+    splits: dict[Literal["train", "val", "test"], PositiveInt] = {"train": 10000, "val": 2000, "test": 2000}
+    shard_size: PositiveInt = 500
+    #: consecutive images rendered in the same scene (a map and spawn point under many weathers)
+    images_per_scene: PositiveInt = 8
+    runner: RunnerConfig = RunnerConfig()
+
+    @field_validator("splits")
+    @classmethod
+    def _all_splits(cls, v: dict[str, int]) -> dict[str, int]:
+        missing = {"train", "val", "test"} - set(v)
+        if missing:
+            raise ValueError(f"missing split(s) {sorted(missing)}; need train, val and test")
+        return v
+
+
+class ContactSheetConfig(_Section):
+    """The generate stage's contact sheet: each row sweeps one parameter from low to high."""
+
+    steps: Annotated[int, Field(ge=2)] = 6
+    scenes: PositiveInt = 2
+    path: str = "reports/data/contact_sheet.png"
+
+
+class BackbonesConfig(_Section):
+    """The image backbones of the grid and where pretrained weights are found."""
+
+    names: tuple[str, ...] = ("cues", "cnn", "tiny")
+    #: a local directory holding one sub-folder of Hugging Face weights per pretrained backbone
+    pretrained_dir: str | None = None
+    batch_size: PositiveInt = 256
+
+
+class TrainConfig(_Section):
+    """The training-set sizes of the grid (nested prefixes of the train split)."""
+
+    sizes: tuple[PositiveInt, ...] = (1000, 3000, 10000)
+
+
+class Params(_Section):
+    """The whole ``params.yaml``."""
+
+    profile: str = "default"
+    #: the root of every random draw in the pipeline
+    seed: NonNegativeInt = 2026
+    simulator: SimulatorConfig = SimulatorConfig()
+    prior: dict[str, tuple[float, float]] = Field(default_factory=dict)
+    data: DataConfig = DataConfig()
+    contact_sheet: ContactSheetConfig = ContactSheetConfig()
+    backbones: BackbonesConfig = BackbonesConfig()
+    train: TrainConfig = TrainConfig()
+
+    @field_validator("prior")
+    @classmethod
+    def _prior_box(cls, v: dict[str, tuple[float, float]]) -> dict[str, tuple[float, float]]:
+        weather.Box.from_mapping(v)  # raises ValueError naming the parameter
+        return v
+
+    @model_validator(mode="after")
+    def _train_fits(self) -> Params:
+        largest = max(self.train.sizes)
+        if largest > self.data.splits["train"]:
+            raise ValueError(
+                f"train.sizes has {largest} but data.splits.train is only {self.data.splits['train']}: "
+                "the train split must cover the largest training size"
+            )
+        return self
+
+    @property
+    def box(self) -> weather.Box:
+        """The uniform prior's support in θ-space."""
+        return weather.Box.from_mapping(self.prior)
+
+
+def _format_error(path: Path, err: ValidationError) -> str:
+    lines = [f"{path}: invalid params"]
+    for e in err.errors():
+        key = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        msg = e["msg"]
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key"
+        elif e["type"] == "missing":
+            msg = "missing key"
+        lines.append(f"  {key}: {msg}")
+    return "\n".join(lines)
+
+
+def parse_params(data: object, *, source: str | Path = "<params>") -> Params:
+    """Validate an already-loaded mapping (e.g. from YAML) into :class:`Params`."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: the top level must be a mapping, got {type(data).__name__}")
+    try:
+        return Params.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_format_error(Path(source), err)) from None
+
+
+def load_params(path: str | Path | None = None) -> Params:
+    """Read and validate a params file (default: ``params.yaml`` at the project root)."""
+    p = Path(path) if path is not None else PROJECT_ROOT / "params.yaml"
+    try:
+        text = p.read_text()
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot read params file ({e.strerror})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{p}: not valid YAML: {e}") from None
+    return parse_params(data, source=p)

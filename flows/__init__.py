@@ -1,0 +1,14 @@
+"""pidc's Prefect flows: thin orchestration over :mod:`components`.
+
+Importing this package points Prefect at project-local state (``.prefect/`` at the project root)
+unless the user configured ``PREFECT_HOME`` or a server (``PREFECT_API_URL``), and turns off
+telemetry (the machines are offline). It must run before ``prefect`` is imported.
+"""
+
+import os
+from pathlib import Path
+
+_ROOT = Path(__file__).resolve().parents[1]
+os.environ.setdefault("PREFECT_HOME", str(_ROOT / ".prefect"))
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+os.environ.setdefault("DO_NOT_TRACK", "1")

@@ -1,0 +1,105 @@
+"""The ``features@<backbone>`` stage: cache a backbone's output for every dataset shard.
+
+``python -m flows.features --backbone cues [--params params.yaml]``. One Prefect task per dataset
+shard; shards whose cached output matches the current data and backbone are skipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+from pathlib import Path
+
+from prefect import flow, get_run_logger, task
+
+from components import dataset, features, seeding
+from components.backbones import Backbone, get_backbone
+from components.config import PROJECT_ROOT, Params, load_params
+from flows.generate import data_root
+from flows.runtime import share_api_with_workers, task_runner, wait_with_progress
+
+
+def backbone_options(name: str, params: Params, params_path: Path) -> dict:
+    """The options of backbone ``name`` from the params: pretrained weights folder, CNN seed."""
+    from components.backbones import PRETRAINED
+
+    if name in PRETRAINED:
+        opts: dict = {}
+        if params.backbones.pretrained_dir:
+            d = Path(params.backbones.pretrained_dir)
+            opts["pretrained_dir"] = str(d if d.is_absolute() else params_path.resolve().parent / d)
+        return opts
+    if name == "cnn":
+        return {"seed": seeding.derive_seed(params.seed, "backbone", name) % (2**31)}
+    return {}
+
+
+def features_root(params_path: Path) -> Path:
+    return params_path.resolve().parent / "features"
+
+
+@functools.lru_cache(maxsize=4)
+def _backbone(name: str, options_json: str) -> Backbone:
+    return get_backbone(name, **json.loads(options_json))
+
+
+@functools.lru_cache(maxsize=4)
+def _split(root: str, name: str) -> dataset.Split:
+    return dataset.open_split(root, name)
+
+
+@task(name="backbone-shard")
+def shard_task(name: str, options_json: str, data: str, split_name: str, k: int, out: str, batch_size: int) -> int:
+    import torch
+
+    torch.set_num_threads(1)  # parallelism comes from the task runner
+    backbone = _backbone(name, options_json)
+    split = _split(data, split_name)
+    values = features.backbone_output(backbone, split.shard_images(k), batch_size)
+    features.write_shard_features(features.FeatureStore(Path(out), name), split, k, values, features.output_fingerprint(backbone))
+    return len(values)
+
+
+@flow(name="features", log_prints=True)
+def extract_features(backbone_name: str, params_path: str) -> dict:
+    """Cache the output of one backbone for the train, val and test splits."""
+    logger = get_run_logger()
+    params_file = Path(params_path)
+    params = load_params(params_file)
+    if backbone_name not in params.backbones.names:
+        raise ValueError(f"backbone {backbone_name!r} is not in backbones.names of {params_file} ({', '.join(params.backbones.names)})")
+    options = backbone_options(backbone_name, params, params_file)
+    backbone = _backbone(backbone_name, json.dumps(options, sort_keys=True))  # fails fast: unknown name, missing weights
+    fingerprint = features.output_fingerprint(backbone)
+    root = data_root(params, params_file)
+    splits = [dataset.open_split(root, s, verify=True) for s in dataset.SPLITS]
+    store = features.FeatureStore(features_root(params_file), backbone_name)
+
+    todo = [(s.name, k) for s in splits for k in range(len(s.shard_files)) if not features.shard_features_done(store, s, k, fingerprint)]
+    logger.info("backbone %s (%s, fingerprint %s): %d shards to compute", backbone_name,
+                "trainable: caching its input" if backbone.trainable else f"frozen, dim {backbone.dim}", fingerprint[:12], len(todo))
+    share_api_with_workers()
+    futures = [
+        shard_task.submit(backbone_name, json.dumps(options, sort_keys=True), str(root), s, k, str(store.root), params.backbones.batch_size)
+        for s, k in todo
+    ]
+    wait_with_progress(futures, desc=f"features@{backbone_name}")
+    manifest = features.write_features_manifest(
+        store, splits, fingerprint=fingerprint, kind="inputs" if backbone.trainable else "features", config=backbone.config()
+    )
+    logger.info("features@%s: %s", backbone_name, {k: v["count"] for k, v in manifest["splits"].items()})
+    return manifest
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description="Cache a backbone's output for every dataset shard (the features stage).")
+    parser.add_argument("--backbone", required=True, help="a name from backbones.names")
+    parser.add_argument("--params", type=Path, default=PROJECT_ROOT / "params.yaml")
+    args = parser.parse_args(argv)
+    params = load_params(args.params)
+    extract_features.with_options(task_runner=task_runner(params.data.runner))(args.backbone, str(args.params))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,115 @@
+"""The ``generate`` stage: render the train/val/test splits into shards, a manifest and a contact sheet.
+
+``python -m flows.generate [--params params.yaml]``. Shards are rendered by parallel Prefect tasks
+(the task runner of ``data.runner``); finished shards are skipped, so a killed run resumes.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from pathlib import Path
+
+from prefect import flow, get_run_logger, task
+
+from components import dataset, seeding
+from components.config import Params, SimulatorConfig, load_params
+from components.simulator.base import make_simulator
+from flows.runtime import params_from_argv, share_api_with_workers, task_runner, wait_with_progress
+
+
+@functools.lru_cache(maxsize=2)
+def _simulator(cfg: SimulatorConfig):
+    """One simulator per worker process (its scene cache survives across the shards it renders)."""
+    return make_simulator(cfg)
+
+
+@task(name="render-shard", retries=0)
+def render_shard(rows: dataset.ShardRows, sim_cfg: SimulatorConfig, root: str) -> dict:
+    return dataset.render_shard(rows, _simulator(sim_cfg), root)
+
+
+def data_root(params: Params, params_path: Path) -> Path:
+    """The data folder: ``data.root``, relative to the params file's folder."""
+    root = Path(params.data.root)
+    return root if root.is_absolute() else params_path.resolve().parent / root
+
+
+def plans(params: Params, renderer_version: str) -> list[dataset.SplitPlan]:
+    """The deterministic plan of each split."""
+    sim = params.simulator
+    return [
+        dataset.plan_split(
+            name,
+            params.data.splits[name],
+            seed=params.seed,
+            box=params.box,
+            images_per_scene=params.data.images_per_scene,
+            shard_size=params.data.shard_size,
+            renderer_version=renderer_version,
+            resolution=(sim.height, sim.width),
+        )
+        for name in dataset.SPLITS
+    ]
+
+
+@flow(name="generate", log_prints=True)
+def generate(params_path: str) -> dict:
+    """Render every unfinished shard, then write the manifest and the contact sheet."""
+    logger = get_run_logger()
+    params_file = Path(params_path)
+    params = load_params(params_file)
+    root = data_root(params, params_file)
+    simulator = _simulator(params.simulator)
+    split_plans = plans(params, simulator.version)
+
+    todo, done = [], 0
+    for plan in split_plans:
+        for path in dataset.remove_orphans(root, plan):
+            logger.info("removed %s (not in the current plan)", path)
+        for spec in plan.shards():
+            if dataset.shard_is_done(spec, root):
+                done += 1
+            else:
+                todo.append(plan.rows(spec))
+    logger.info("%d shards already done, %d to render (renderer %s)", done, len(todo), simulator.version)
+
+    t0 = time.perf_counter()
+    share_api_with_workers()
+    futures = [render_shard.submit(rows, params.simulator, str(root)) for rows in todo]
+    wait_with_progress(futures, desc="generate shards")
+    n_images = sum(r.spec.stop - r.spec.start for r in todo)
+    elapsed = time.perf_counter() - t0
+    if n_images:
+        logger.info("rendered %d images in %.1f s (%.0f images/s)", n_images, elapsed, n_images / elapsed)
+
+    manifest = dataset.write_manifest(
+        root,
+        split_plans,
+        renderer_version=simulator.version,
+        resolution=(params.simulator.height, params.simulator.width),
+        seed=params.seed,
+        box=params.box,
+        images_per_scene=params.data.images_per_scene,
+    )
+
+    from components.simulator.contact_sheet import contact_sheet, save_png
+
+    sheet_seeds = [seeding.derive_seed(params.seed, "contact_sheet", j) for j in range(params.contact_sheet.scenes)]
+    sheet = contact_sheet(simulator, sheet_seeds, params.contact_sheet.steps)
+    sheet_path = Path(params.contact_sheet.path)
+    if not sheet_path.is_absolute():
+        sheet_path = params_file.resolve().parent / sheet_path
+    save_png(sheet_path, sheet)
+    logger.info("dataset %s: %s; contact sheet %s", manifest["content_hash"][:12],
+                {k: v["count"] for k, v in manifest["splits"].items()}, sheet_path)
+    return manifest
+
+
+def main(argv: list[str] | None = None) -> None:
+    params, path = params_from_argv("Render the simulated dataset (the generate stage).", argv)
+    generate.with_options(task_runner=task_runner(params.data.runner))(str(path))
+
+
+if __name__ == "__main__":
+    main()

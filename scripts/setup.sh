@@ -1,0 +1,18 @@
+#!/usr/bin/env bash
+# Create .venv and install pidc with every extra. Idempotent: a second run only checks.
+# torch 2.13.0 first: that exact pin is the registry's CPU build (~200 MB); anything else pulls CUDA (~3.5 GB).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+if [ ! -x .venv/bin/python ]; then
+  "$PY" -m venv .venv
+fi
+. .venv/bin/activate
+export PIP_DISABLE_PIP_VERSION_CHECK=1
+# pip's exit status is kept (pipefail); only the noise of unused local index folders is dropped
+pipq() { python -m pip "$@" 2>&1 | { grep -v "^WARNING: Location" || true; }; }
+pipq install -q --upgrade pip
+pipq install -q "torch==2.13.0"
+pipq install -q -e ".[test,carla,pretrained]"
+python -m pip check
+python -c "import torch, prefect, mlflow, dvc, zuko, cvxpy, onnxruntime, cv2, components; print('pidc', components.__version__, '| torch', torch.__version__, '| prefect', prefect.__version__)"

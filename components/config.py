@@ -50,6 +50,8 @@ class CarlaConfig(_Section):
     traffic_manager_port: Annotated[int, Field(gt=0, lt=65536)] = 8000
     max_vehicles: NonNegativeInt = 15
     max_pedestrians: NonNegativeInt = 10
+    #: horizontal field of view of the RGB camera, degrees
+    fov: Annotated[float, Field(gt=0, lt=180)] = 90.0
 
 
 class SimulatorConfig(_Section):

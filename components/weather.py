@@ -184,39 +184,68 @@ def weather_from_theta(theta: Iterable[float], sun_azimuth_angle: float) -> dict
     return complete_weather(w)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Box:
-    """An axis-aligned box in θ-space: the support of the uniform training prior.
+    """An axis-aligned box ``[low, high]`` in θ-space: the support of a uniform prior.
 
-    ``low`` and ``high`` have shape ``(6,)`` in physical units, in :data:`PREDICTED` order, with
-    ``PARAMETERS[name].low <= low < high <= PARAMETERS[name].high``.
+    The weather prior is the 6-D box of :data:`PREDICTED` (:meth:`full`, :meth:`from_mapping`); the
+    same class serves boxes of any dimension ``d`` (e.g. 1–2-D toys whose posterior is known).
+
+    Attributes:
+        low, high: read-only float64 arrays ``(d,)`` in physical units, finite, ``low < high``.
+        names: one name per parameter (used in messages; ``θ0, θ1, …`` when not given). A name that is a
+            weather parameter must stay within its physical range.
+        units: one unit per parameter (from :data:`PARAMETERS` for weather names, else ``""``).
     """
 
     low: np.ndarray
     high: np.ndarray
+    names: tuple[str, ...] = ()
+    units: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        low = np.asarray(self.low, dtype=np.float64)
-        high = np.asarray(self.high, dtype=np.float64)
-        if low.shape != (len(PREDICTED),) or high.shape != (len(PREDICTED),):
-            raise ValueError(f"a box needs {len(PREDICTED)} lows and highs, got shapes {low.shape} and {high.shape}")
-        for i, name in enumerate(PREDICTED):
-            p = PARAMETERS[name]
-            for v in (low[i], high[i]):
-                _check_value(name, v, p.low, p.high, "prior box: ")
-            if not low[i] < high[i]:
-                raise ValueError(f"prior box: {name!r} needs low < high, got [{low[i]:g}, {high[i]:g}]")
-        object.__setattr__(self, "low", low)
-        object.__setattr__(self, "high", high)
+        low = np.atleast_1d(np.asarray(self.low, dtype=np.float64)).copy()
+        high = np.atleast_1d(np.asarray(self.high, dtype=np.float64)).copy()
+        if low.ndim != 1 or low.shape != high.shape or low.size == 0:
+            raise ValueError(f"a box needs two 1-D arrays of equal length >= 1, got shapes {low.shape} and {high.shape}")
+        d = low.size
+        names = tuple(self.names) or tuple(f"θ{i}" for i in range(d))
+        units = tuple(self.units) or tuple(PARAMETERS[n].unit if n in PARAMETERS else "" for n in names)
+        if len(names) != d or len(units) != d:
+            raise ValueError(f"a box of dimension {d} needs {d} names and units, got {len(names)} and {len(units)}")
+        for i, name in enumerate(names):
+            if name in PARAMETERS:
+                p = PARAMETERS[name]
+                for v in (low[i], high[i]):
+                    _check_value(name, v, p.low, p.high, "prior box: ")
+            if not (math.isfinite(low[i]) and math.isfinite(high[i]) and low[i] < high[i]):
+                raise ValueError(f"prior box: {name!r} needs finite low < high, got [{low[i]:g}, {high[i]:g}]")
+        low.setflags(write=False)
+        high.setflags(write=False)
+        for attr, value in (("low", low), ("high", high), ("names", names), ("units", units)):
+            object.__setattr__(self, attr, value)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Box):
+            return NotImplemented
+        return (
+            np.array_equal(self.low, other.low)
+            and np.array_equal(self.high, other.high)
+            and self.names == other.names
+            and self.units == other.units
+        )
+
+    def __hash__(self) -> int:
+        return hash((self.low.tobytes(), self.high.tobytes(), self.names, self.units))
 
     @classmethod
     def full(cls) -> Box:
         """The whole physical range of every predicted parameter (the paper's prior)."""
-        return cls(_LOWS.copy(), _HIGHS.copy())
+        return cls(_LOWS.copy(), _HIGHS.copy(), PREDICTED)
 
     @classmethod
     def from_mapping(cls, ranges: Mapping[str, Iterable[float]]) -> Box:
-        """From ``{name: (low, high)}``; missing names take their full physical range."""
+        """The 6-D weather box from ``{name: (low, high)}``; missing names take their full physical range."""
         unknown = [k for k in ranges if k not in PREDICTED]
         if unknown:
             raise ValueError(f"prior box: unknown predicted parameter(s) {unknown}; known: {', '.join(PREDICTED)}")
@@ -227,46 +256,57 @@ class Box:
                 if len(pair) != 2:
                     raise ValueError(f"prior box: {name!r} needs [low, high], got {pair}")
                 low[i], high[i] = pair
-        return cls(low, high)
+        return cls(low, high, PREDICTED)
+
+    @property
+    def dim(self) -> int:
+        """d, the number of parameters."""
+        return int(self.low.size)
 
     @property
     def width(self) -> np.ndarray:
+        """high − low, shape ``(d,)``."""
         return self.high - self.low
 
     def log_volume(self) -> float:
-        """log of the box volume in physical units (%⁵·deg)."""
+        """log of the box volume in physical units (e.g. %⁵·deg for the weather box)."""
         return float(np.log(self.width).sum())
 
     def contains(self, theta: np.ndarray) -> np.ndarray:
-        """Boolean mask of shape ``theta.shape[:-1]``: inside the closed box."""
+        """Boolean mask of shape ``theta.shape[:-1]``: inside the closed box (NaN is outside)."""
         t = np.asarray(theta, dtype=np.float64)
         return np.all((t >= self.low) & (t <= self.high), axis=-1)
 
     def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
-        """``n`` draws of θ from the uniform prior on the box, shape ``(n, 6)``."""
+        """``n`` draws of θ from the uniform prior on the box, shape ``(n, d)``."""
         if n < 0:
             raise ValueError(f"number of prior samples must be >= 0, got {n}")
-        return self.low + rng.random((n, len(PREDICTED))) * self.width
+        return self.low + rng.random((n, self.dim)) * self.width
 
     def log_prob(self, theta: np.ndarray) -> np.ndarray:
         """Uniform prior log-density in physical units; ``-inf`` outside the box."""
         inside = self.contains(theta)
         return np.where(inside, -self.log_volume(), -np.inf)
 
-    def check(self, theta: np.ndarray, *, what: str = "θ") -> None:
-        """Raise ``ValueError`` naming the first parameter of ``theta`` (…, 6) outside the box or non-finite."""
+    def check(self, theta: object, *, what: str = "θ") -> None:
+        """Raise ``ValueError`` naming the first parameter of ``theta`` ``(..., d)`` outside the box or non-finite.
+
+        ``theta`` is an array or a (CPU or GPU) torch tensor.
+        """
+        if hasattr(theta, "detach"):  # a torch tensor, without importing torch here
+            theta = theta.detach().cpu().double().numpy()  # type: ignore[union-attr]
         t = np.asarray(theta, dtype=np.float64)
-        if t.shape[-1:] != (len(PREDICTED),):
-            raise ValueError(f"{what} must have shape (..., {len(PREDICTED)}), got {t.shape}")
-        flat = t.reshape(-1, len(PREDICTED))
-        for i, name in enumerate(PREDICTED):
+        if t.shape[-1:] != (self.dim,):
+            raise ValueError(f"{what} must have shape (..., {self.dim}) ({', '.join(self.names)}), got {t.shape}")
+        flat = t.reshape(-1, self.dim)
+        for i, name in enumerate(self.names):
             col = flat[:, i]
             bad = ~np.isfinite(col) | (col < self.low[i]) | (col > self.high[i])
             if bad.any():
                 j = int(np.argmax(bad))
                 raise ValueError(
                     f"{what}: {name!r} = {float(col[j])!r} at row {j} is outside the prior box "
-                    f"[{self.low[i]:g}, {self.high[i]:g}] {PARAMETERS[name].unit}"
+                    f"[{self.low[i]:g}, {self.high[i]:g}] {self.units[i]}".rstrip()
                 )
 
 

@@ -25,9 +25,11 @@ def task_runner(cfg: RunnerConfig) -> TaskRunner:
     if cfg.kind == "dask":
         from prefect_dask import DaskTaskRunner
 
-        if cfg.dask_address:
+        if cfg.dask_address:  # an existing cluster: its workers must reach the same Prefect server (PREFECT_API_URL)
             return DaskTaskRunner(address=cfg.dask_address)
-        return DaskTaskRunner(cluster_kwargs={"n_workers": cfg.workers, "threads_per_worker": 1, "processes": True})
+        # a local cluster of threads: the cluster starts before the flow body, so worker processes could not be
+        # pointed at the flow's temporary Prefect server and would each start their own
+        return DaskTaskRunner(cluster_kwargs={"n_workers": 1, "threads_per_worker": cfg.workers, "processes": False})
     raise ValueError(f"unknown task runner kind {cfg.kind!r}; known: threads, processes, dask")
 
 

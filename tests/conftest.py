@@ -45,6 +45,7 @@ def micro_params(**overrides) -> dict:
 
 
 def write_params(folder: Path, **overrides) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
     path = folder / "params.yaml"
     path.write_text(yaml.safe_dump(micro_params(**overrides), sort_keys=False))
     return path

@@ -85,7 +85,7 @@ def test_box_validation_and_sampling():
     assert np.all(np.abs(theta.mean(0) - (box.low + box.high) / 2) < 4 * se)
     np.testing.assert_allclose(box.log_prob(theta[:3]), -box.log_volume())
     assert box.log_prob(np.array([[101, 15, 0, 0, 0, 0]]))[0] == -np.inf
-    with pytest.raises(ValueError, match="'fog_density' needs low < high"):
+    with pytest.raises(ValueError, match="'fog_density' needs finite low < high"):
         weather.Box.from_mapping({"fog_density": [20, 10]})
     with pytest.raises(ValueError, match="'cloudiness' = 120 is outside"):
         weather.Box.from_mapping({"cloudiness": [0, 120]})

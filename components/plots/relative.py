@@ -1,0 +1,133 @@
+"""Task III figures: box plots of d_E and of the mean square gap δ against the noise level η, and ROC curves
+of the out-of-ODD decision "δ above a threshold"."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.patches import Patch
+
+from components.plots.canvas import new_figure
+from components.plots.checks import as_named_arrays
+
+__all__ = ["roc_curve", "boxplots_by_level", "roc_curves"]
+
+
+def roc_curve(negatives: object, positives: object) -> tuple[np.ndarray, np.ndarray, float]:
+    """ROC of the decision "positive when score ≥ s" swept over every threshold s.
+
+    Arguments:
+        negatives: ``(m,)`` scores of negative cases (Task III: δ for targets in the ODD, η = 0).
+        positives: ``(p,)`` scores of positive cases (δ for targets out of the ODD, η > 0).
+
+    Returns:
+        ``(fpr, tpr, auc)``: false- and true-positive rates from (0, 0) to (1, 1) (one point per distinct score,
+        ties moving both rates at once), and the area under the curve (trapezoids), which equals the
+        Mann–Whitney probability P(score⁺ > score⁻) + ½ P(score⁺ = score⁻).
+    """
+    neg = as_named_arrays({"negatives": negatives}, "scores")["negatives"]
+    pos = as_named_arrays({"positives": positives}, "scores")["positives"]
+    scores = np.concatenate([pos, neg])
+    is_pos = np.concatenate([np.ones(pos.size), np.zeros(neg.size)])
+    order = np.argsort(-scores, kind="mergesort")
+    scores, is_pos = scores[order], is_pos[order]
+    last_of_tie = np.r_[np.nonzero(np.diff(scores))[0], scores.size - 1]
+    tp = np.cumsum(is_pos)[last_of_tie]
+    fp = np.cumsum(1 - is_pos)[last_of_tie]
+    tpr = np.r_[0.0, tp / pos.size]
+    fpr = np.r_[0.0, fp / neg.size]
+    auc = float(np.sum(np.diff(fpr) * (tpr[1:] + tpr[:-1]) / 2))
+    return fpr, tpr, auc
+
+
+def _level_label(level: object) -> str:
+    return f"{level:g}" if isinstance(level, (int, float, np.floating, np.integer)) else str(level)
+
+
+def boxplots_by_level(
+    values: Mapping[float, object],
+    baseline: Mapping[float, object] | None = None,
+    xlabel: str = "noise level η",
+    ylabel: str = "value",
+    title: str | None = None,
+    labels: tuple[str, str] = ("measured", "chance baseline"),
+) -> Figure:
+    """Box-and-whisker plots of a statistic for each level (e.g. d_E or δ for each η), in the given order.
+
+    Arguments:
+        values: level → ``(r,)`` values of the statistic over the repetitions at that level.
+        baseline: optional level → ``(r',)`` values of the same statistic achieved by chance (e.g. δ for
+            random weights); drawn as grey boxes beside the measured ones. Its levels must be among ``values``'.
+    """
+    vals = as_named_arrays(values, "values")
+    base = None if baseline is None else as_named_arrays(baseline, "baseline")
+    if base is not None:
+        missing = [k for k in base if k not in vals]
+        if missing:
+            raise ValueError(f"baseline has level(s) {missing} that values does not have")
+    keys = list(vals)
+    n_boxes = len(keys) * (2 if base is not None else 1)
+    fig = new_figure(min(13.0, max(6.5, 0.45 * n_boxes + 2.5)), 4.8)
+    ax = fig.add_subplot()
+    pos = np.arange(1, len(keys) + 1, dtype=float)
+    shift = 0.2 if base is not None else 0.0
+    width = 0.35 if base is not None else 0.6
+    common = {"patch_artist": True, "widths": width, "medianprops": {"color": "black"}, "flierprops": {"markersize": 3}}
+    main = ax.boxplot([vals[k] for k in keys], positions=pos - shift, **common)
+    for patch in main["boxes"]:
+        patch.set_facecolor("#6a8fc7")
+    handles = [Patch(facecolor="#6a8fc7", edgecolor="black", label=labels[0])]
+    if base is not None:
+        bkeys = [k for k in keys if k in base]
+        bpos = np.array([pos[keys.index(k)] for k in bkeys]) + shift
+        chance = ax.boxplot([base[k] for k in bkeys], positions=bpos, **common)
+        for patch in chance["boxes"]:
+            patch.set_facecolor("#cfcfcf")
+        handles.append(Patch(facecolor="#cfcfcf", edgecolor="black", label=labels[1]))
+        ax.legend(handles=handles, frameon=False)
+    ax.set_xticks(pos, [_level_label(k) for k in keys])
+    ax.set_xlim(0.4, len(keys) + 0.6)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title)
+    ax.grid(axis="y", alpha=0.25)
+    return fig
+
+
+def roc_curves(
+    negatives: object,
+    positives: Mapping[float, object],
+    score_name: str = "δ",
+    title: str = "Out-of-ODD detection",
+) -> Figure:
+    """ROC curves of "out of the ODD when the score ≥ s", one per level, AUC in the legend.
+
+    Arguments:
+        negatives: ``(m,)`` scores of in-ODD targets (Task III: δ at η = 0).
+        positives: level → ``(p,)`` scores of out-of-ODD targets at that level (δ at each η > 0).
+        score_name: the score's symbol in the title.
+    """
+    pos = as_named_arrays(positives, "positives")
+    fig = new_figure(6.6, 6.0)
+    ax = fig.add_subplot()
+    ax.plot([0, 1], [0, 1], color="grey", linestyle=":", linewidth=1, label="chance (AUC 0.5)")
+    cmap_n = max(1, len(pos) - 1)
+    from matplotlib import colormaps
+
+    cmap = colormaps["viridis"]
+    for k, (level, scores) in enumerate(pos.items()):
+        fpr, tpr, auc = roc_curve(negatives, scores)
+        ax.plot(fpr, tpr, drawstyle="default", color=cmap(0.9 * k / cmap_n), linewidth=1.6,
+                label=f"η = {_level_label(level)}  (AUC {auc:.3f})")
+    ax.set_xlim(-0.01, 1.01)
+    ax.set_ylim(-0.01, 1.01)
+    ax.set_aspect("equal")
+    ax.set_xlabel("false-positive rate (in-ODD targets flagged)")
+    ax.set_ylabel("true-positive rate (out-of-ODD targets flagged)")
+    ax.set_title(f"{title}: {score_name} ≥ threshold")
+    ax.legend(loc="lower right", fontsize=8, frameon=False)
+    ax.grid(alpha=0.25)
+    return fig

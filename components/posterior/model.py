@@ -1,0 +1,326 @@
+"""The neural posterior estimator q(θ | x): embedding → context → conditional neural spline flow over z.
+
+Notation (paper): θ ∈ [low, high]ᵈ the physical weather parameters (d = 6 for pidc, any d for toys),
+x an input (cached image features, or images for a trainable embedding), z = logit-scaled θ ∈ ℝᵈ
+(:mod:`components.posterior.bijection`). The flow models q(z | x); densities in physical units are
+
+    log q(θ | x) = log q_z(z(θ) | x) − log |det ∂θ/∂z|.
+
+Inside the zuko flow, z is first divided by the fixed :data:`Z_SCALE` so that the image of the closed box,
+|z| ≤ :data:`~components.posterior.bijection.Z_MAX` ≈ 13.8, lies in [−4, 4], inside the [−5, 5] domain where
+zuko's splines act (outside it they are the identity). ``NPE.flow(x)`` returns the full z-space distribution,
+this scaling included.
+
+With ``FlowConfig.ensemble = K > 1`` the estimator is the equal-weight mixture of K flows with independent
+initializations sharing the embedding: ``q(θ | x) = (1/K) Σₖ qₖ(θ | x)``. The members are trained together on the
+same batches, each on its own NPE loss (the loss is their mean), so they differ by their initialization only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import zuko
+from torch import Tensor, nn
+from torch.distributions import AffineTransform, Distribution
+
+from components import seeding, weather
+from components.posterior.bijection import IntervalBox, ScaledLogit, Z_MAX, as_interval_box
+from components.posterior.mixture import EqualMixture, draw_flow, standard_normal
+
+__all__ = ["FlowConfig", "NPE", "Z_SCALE"]
+
+#: z is divided by this inside the flow: the closed box maps into [−4, 4] (zuko's splines act on [−5, 5]).
+Z_SCALE: float = Z_MAX / 4.0
+
+
+@dataclass(frozen=True)
+class FlowConfig:
+    """Hyper-parameters of the conditional flow.
+
+    Attributes:
+        transforms: number of spline transforms of each NSF.
+        hidden_features: widths of each conditioner MLP's hidden layers.
+        bins: number of rational-quadratic spline bins K.
+        passes: 2 = coupling flow (fast sampling); ``None`` = fully autoregressive (d passes to sample).
+        standardize: standardize the inputs x with a mean/std fitted on the training set (buffers).
+        ensemble: number of flows K in the equal-weight mixture (1 = a single flow).
+    """
+
+    transforms: int = 3
+    hidden_features: tuple[int, ...] = (128, 128)
+    bins: int = 8
+    passes: int | None = 2
+    standardize: bool = True
+    ensemble: int = 1
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "hidden_features", tuple(int(h) for h in self.hidden_features))
+        for name in ("transforms", "bins", "ensemble"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"FlowConfig.{name} must be an integer >= 1, got {v!r}")
+        if self.bins < 2:
+            raise ValueError(f"FlowConfig.bins must be >= 2, got {self.bins}")
+        if not self.hidden_features or any(h < 1 for h in self.hidden_features):
+            raise ValueError(f"FlowConfig.hidden_features must be positive widths, got {self.hidden_features}")
+        if self.passes is not None and (isinstance(self.passes, bool) or not isinstance(self.passes, int) or self.passes < 1):
+            raise ValueError(f"FlowConfig.passes must be None (autoregressive) or an integer >= 1, got {self.passes!r}")
+
+
+def _build_flow(dim: int, context: int, config: FlowConfig, seed: int) -> zuko.flows.Flow:
+    """One conditional NSF over z ∈ ℝᵈ, preceded by the fixed scaling z ↦ z / Z_SCALE; weights from ``seed``."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        nsf = zuko.flows.NSF(
+            features=dim,
+            context=context,
+            transforms=config.transforms,
+            bins=config.bins,
+            passes=config.passes,
+            hidden_features=config.hidden_features,
+        )
+    scale = zuko.flows.UnconditionalTransform(
+        AffineTransform, loc=torch.tensor(0.0), scale=torch.tensor(1.0 / Z_SCALE), buffer=True
+    )
+    return zuko.flows.Flow([scale, *nsf.transform.transforms], nsf.base)
+
+
+def _generator(rng: torch.Generator | int) -> torch.Generator:
+    if isinstance(rng, torch.Generator):
+        return rng
+    if isinstance(rng, bool) or not isinstance(rng, int):
+        raise TypeError(f"rng must be a torch.Generator or an integer seed, got {type(rng).__name__}")
+    return torch.Generator().manual_seed(rng)
+
+
+class NPE(nn.Module):
+    """Neural posterior estimator ``q(θ | x)`` with support exactly the prior box.
+
+    Arguments:
+        embedding: a module mapping inputs ``(B, *input_shape)`` to contexts ``(B, features)``, trained with the
+            flow; ``None`` = identity (cached, frozen features of size ``features``).
+        features: the context size (after the embedding).
+        box: the prior box (:class:`components.weather.Box`, of any dimension d).
+        config: the flow's hyper-parameters.
+        input_shape: the shape of one input; defaults to ``(features,)`` without an embedding. Required with an
+            embedding when ``config.standardize`` (the mean/std buffers have this shape: per-element standardization).
+        seed: the flows' initial weights descend from it (member k from ``derive_seed(seed, "posterior", "flow", k)``);
+            the embedding is initialized by the caller.
+
+    Attributes:
+        feature_mean, feature_std: standardization buffers of shape ``input_shape`` (zeros/ones until
+            :meth:`fit_standardization`).
+    """
+
+    feature_mean: Tensor
+    feature_std: Tensor
+
+    def __init__(
+        self,
+        embedding: nn.Module | None,
+        features: int,
+        box: weather.Box,
+        config: FlowConfig = FlowConfig(),
+        *,
+        input_shape: tuple[int, ...] | None = None,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        if isinstance(features, bool) or not isinstance(features, int) or features < 1:
+            raise ValueError(f"features (the context size) must be an integer >= 1, got {features!r}")
+        if not isinstance(config, FlowConfig):
+            raise TypeError(f"config must be a FlowConfig, got {type(config).__name__}")
+        if embedding is not None and not isinstance(embedding, nn.Module):
+            raise TypeError(f"embedding must be a torch.nn.Module or None, got {type(embedding).__name__}")
+        self.box = as_interval_box(box)
+        self.config = config
+        self.features = features
+        self.bijection = ScaledLogit(self.box)
+        self.embedding = embedding if embedding is not None else nn.Identity()
+        if embedding is None:
+            if input_shape is not None and tuple(input_shape) != (features,):
+                raise ValueError(f"without an embedding the input shape is (features,) = ({features},), got {input_shape}")
+            input_shape = (features,)
+        elif config.standardize and input_shape is None:
+            raise ValueError("with an embedding and FlowConfig.standardize=True, give input_shape (one input's shape)")
+        self.input_shape: tuple[int, ...] | None = tuple(int(s) for s in input_shape) if input_shape is not None else None
+        if config.standardize:
+            assert self.input_shape is not None
+            self.register_buffer("feature_mean", torch.zeros(self.input_shape))
+            self.register_buffer("feature_std", torch.ones(self.input_shape))
+        self.flows = nn.ModuleList(
+            _build_flow(self.box.dim, features, config, seeding.derive_seed(seed, "posterior", "flow", k))
+            for k in range(config.ensemble)
+        )
+
+    # --- shapes and inputs -------------------------------------------------------------------------------
+
+    @property
+    def dim(self) -> int:
+        """d, the number of parameters θ."""
+        return self.box.dim
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return next(self.flows.parameters()).dtype
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.flows.parameters()).device
+
+    def _inputs(self, x: Tensor) -> Tensor:
+        x = torch.as_tensor(x)
+        if self.input_shape is not None and tuple(x.shape[1:]) != self.input_shape:
+            raise ValueError(
+                f"x must have shape (batch, {', '.join(map(str, self.input_shape))}), got {tuple(x.shape)}"
+            )
+        if x.dim() < 1 or x.shape[0] == 0:
+            raise ValueError(f"x must be a non-empty batch, got shape {tuple(x.shape)}")
+        if x.is_floating_point() and not bool(torch.isfinite(x).all()):
+            raise ValueError("x contains NaN or infinite values")
+        return x.to(device=self.device, dtype=self.dtype)
+
+    @torch.no_grad()
+    def fit_standardization(self, x: Tensor) -> None:
+        """Set ``feature_mean``/``feature_std`` to the per-element mean/std of training inputs ``x (n, *input_shape)``.
+
+        Elements with (near) zero spread keep std 1. Does nothing when ``config.standardize`` is off.
+        """
+        if not self.config.standardize:
+            return
+        x = self._inputs(x).to(torch.float64)
+        mean = x.mean(dim=0)
+        std = x.std(dim=0, unbiased=False) if x.shape[0] > 1 else torch.ones_like(mean)
+        std = torch.where(std > 1e-8 * (1.0 + mean.abs()), std, torch.ones_like(std))
+        self.feature_mean.copy_(mean.to(self.feature_mean))
+        self.feature_std.copy_(std.to(self.feature_std))
+
+    def context(self, x: Tensor) -> Tensor:
+        """The flow's context ``c = embedding((x − mean)/std)``: ``(B, *input_shape) → (B, features)``."""
+        x = self._inputs(x)
+        if self.config.standardize:
+            x = (x - self.feature_mean) / self.feature_std
+        c = self.embedding(x)
+        if c.dim() != 2 or c.shape != (x.shape[0], self.features):
+            raise ValueError(f"the embedding must return (batch, features) = ({x.shape[0]}, {self.features}), got {tuple(c.shape)}")
+        return c
+
+    def _theta(self, theta: Tensor, batch: int) -> Tensor:
+        theta = torch.as_tensor(theta)
+        if theta.dim() not in (2, 3) or theta.shape[-1] != self.dim or theta.shape[0] != batch:
+            raise ValueError(
+                f"θ must have shape ({batch}, {self.dim}) or ({batch}, m, {self.dim}) "
+                f"({', '.join(self.box.names)}), got {tuple(theta.shape)}"
+            )
+        theta = theta.to(device=self.device, dtype=torch.float64)
+        if not bool(torch.isfinite(theta).all()):
+            raise ValueError("θ contains NaN or infinite values")
+        return theta
+
+    # --- densities -------------------------------------------------------------------------------------
+
+    def log_prob_members(self, theta: Tensor, context: Tensor) -> Tensor:
+        """Each flow's log qₖ(θ | x) in physical units, Jacobian included: ``(K, B)`` or ``(K, B, m)``.
+
+        ``theta`` is ``(B, d)`` or ``(B, m, d)`` (m points per input), ``context`` is :meth:`context`'s ``(B, features)``.
+        Points outside the closed box get ``-inf``. Points within ``EDGE_EPS·width`` of a face take the density at
+        the clipped point (finite on the faces).
+        """
+        theta = self._theta(theta, context.shape[0])
+        inside = self.bijection.contains(theta)
+        z64 = self.bijection.to_unbounded(theta)
+        ladj = self.bijection.log_abs_det_jacobian(z64)
+        z = z64.to(self.dtype)
+        c = context if theta.dim() == 2 else context.unsqueeze(-2)
+        log_qz = torch.stack([flow(c).log_prob(z) for flow in self.flows])
+        log_q = log_qz - ladj.to(self.dtype)
+        return torch.where(inside, log_q, torch.full_like(log_q, -math.inf))
+
+    def log_prob(self, theta: Tensor, x: Tensor) -> Tensor:
+        """log q(θ | x) in physical units (per unit of each parameter's unit), Jacobian included.
+
+        Arguments:
+            theta: ``(B, d)`` (one θ per input) or ``(B, m, d)`` (m θ's per input), physical units.
+            x: ``(B, *input_shape)``.
+
+        Returns:
+            ``(B,)`` or ``(B, m)``; exactly ``-inf`` outside the closed box (the density is zero there).
+        """
+        members = self.log_prob_members(theta, self.context(x))
+        return torch.logsumexp(members, dim=0) - math.log(len(self.flows))
+
+    def forward(self, theta: Tensor, x: Tensor) -> Tensor:
+        """Same as :meth:`log_prob`."""
+        return self.log_prob(theta, x)
+
+    def flow(self, x: Tensor) -> Distribution:
+        """The z-space distribution q(z | x), batch shape ``(B,)``, event shape ``(d,)`` (z as in :mod:`components.weather`).
+
+        A zuko ``NormalizingFlow`` (its first transform is the fixed scaling by 1/:data:`Z_SCALE`), or an
+        :class:`~components.posterior.mixture.EqualMixture` of them for an ensemble.
+        """
+        c = self.context(x)
+        dists = [flow(c) for flow in self.flows]
+        return dists[0] if len(dists) == 1 else EqualMixture(dists)
+
+    # --- sampling --------------------------------------------------------------------------------------
+
+    def _draw_z(self, context: Tensor, n: int, generator: torch.Generator, with_log_prob: bool) -> tuple[Tensor, Tensor | None]:
+        """z ``(n, B, d)`` from the (mixture) flow, and its z-space log-density ``(n, B)`` when asked."""
+        b = context.shape[0]
+        eps = standard_normal((n, b, self.dim), generator, like=context)
+        if len(self.flows) == 1:
+            dist = self.flows[0](context)
+            if with_log_prob:
+                z, log_qz = draw_flow(dist, eps)
+                return z, log_qz
+            return dist.transform.inv(eps), None
+        which = torch.randint(len(self.flows), (n, b), generator=generator, device=generator.device).to(self.device)
+        z = torch.empty_like(eps)
+        c = context.unsqueeze(0).expand(n, b, context.shape[-1])
+        for k, flow in enumerate(self.flows):
+            mask = which == k
+            if bool(mask.any()):
+                z[mask] = flow(c[mask]).transform.inv(eps[mask])
+        if not with_log_prob:
+            return z, None
+        parts = torch.stack([flow(context).log_prob(z) for flow in self.flows])
+        return z, torch.logsumexp(parts, dim=0) - math.log(len(self.flows))
+
+    def _check_n(self, n: int) -> None:
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ValueError(f"number of posterior samples n must be an integer >= 1, got {n!r}")
+
+    def sample(self, x: Tensor, n: int, *, rng: torch.Generator | int = 0) -> Tensor:
+        """n draws θ ~ q(θ | x) per input: ``(B, *input_shape) → (B, n, d)``, physical units, inside the closed box.
+
+        ``rng`` is a ``torch.Generator`` (advanced by the call) or an integer seed (a fresh generator: the same
+        seed gives the same draws). No global RNG state is used. Runs without autograd.
+        """
+        with torch.no_grad():
+            return self.sample_and_log_prob(x, n, rng=rng, with_log_prob=False)[0]
+
+    def sample_and_log_prob(
+        self, x: Tensor, n: int, *, rng: torch.Generator | int = 0, with_log_prob: bool = True
+    ) -> tuple[Tensor, Tensor]:
+        """n draws θ ~ q(θ | x) per input and log q(θ | x): ``(B, n, d)`` and ``(B, n)`` (physical units).
+
+        The log-density is that of the drawn z (cheaper than :meth:`log_prob` on θ). In float64 both agree to ~1e-10,
+        except for draws beyond the faces' clipping (probability < 1e-6). θ is returned in the model's dtype: in
+        float32, θ within ~1e-5 of a face is rounded, and :meth:`log_prob` of the rounded θ can differ by up to
+        ~0.1 nat there. With ``with_log_prob=False`` the second item is empty.
+        """
+        self._check_n(n)
+        generator = _generator(rng)
+        context = self.context(x)
+        z, log_qz = self._draw_z(context, n, generator, with_log_prob)
+        z64 = z.to(torch.float64)
+        theta = self.bijection.clamp_inward(self.bijection.to_physical(z64).to(self.dtype))
+        theta = theta.movedim(0, 1)
+        if log_qz is None:
+            return theta, torch.empty(0, dtype=self.dtype, device=self.device)
+        log_q = log_qz - self.bijection.log_abs_det_jacobian(z64).to(self.dtype)
+        return theta, log_q.movedim(0, 1)

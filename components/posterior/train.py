@@ -1,0 +1,418 @@
+"""Training loop of the neural posterior estimator: AdamW, LR schedule, early stopping, resumable checkpoints.
+
+The loss is :func:`~components.posterior.loss.npe_loss`: ``−log q(θ | x)`` in PHYSICAL units (Jacobian of the
+bijection included), plus ``balance · penalty`` for balanced NPE. Early stopping watches the validation loss (the
+same objective) and the returned model holds the weights of the best epoch.
+
+Randomness, all from ``TrainingConfig.seed`` (no global RNG state leaks):
+
+* shuffling: epoch ``e`` permutes the training set with a ``torch.Generator`` seeded by
+  ``seeding.derive_seed(seed, "train", "shuffle", e)``, so epoch ``e``'s order does not depend on earlier epochs;
+* any global-RNG use inside the model (e.g. dropout in a caller's embedding) runs in ``torch.random.fork_rng``
+  seeded by ``derive_seed(seed, "train", "torch", e)``;
+* the flows' initial weights come from :class:`~components.posterior.model.NPE`'s own ``seed``;
+* balanced NPE's marginal pairs roll θ by one place within the shuffled batch (no extra draws).
+
+Hence a run killed after epoch ``e`` resumes from its checkpoint (model, AdamW and schedule state, best weights,
+early-stopping counters, history) and ends bit-for-bit like an uninterrupted run (same thread count and device).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from components import seeding
+from components.posterior.checkpoint import load_checkpoint, save_checkpoint
+from components.posterior.loss import npe_loss
+from components.posterior.model import NPE
+
+__all__ = ["TrainingConfig", "EpochRecord", "History", "train", "check_split"]
+
+CHECKPOINT_FORMAT = 1
+
+
+@dataclass(frozen=True)
+class TrainingConfig:
+    """Settings of :func:`train`.
+
+    Attributes:
+        epochs: maximum number of passes over the training set.
+        batch_size: simulations per step (validation uses the same batches size).
+        lr: AdamW's initial learning rate.
+        weight_decay: AdamW's decoupled weight decay.
+        schedule: ``"cosine"`` (annealed from ``lr`` to ``min_lr`` over ``epochs``), ``"plateau"`` (× ``plateau_factor``
+            after ``plateau_patience`` epochs without improvement, floored at ``min_lr``) or ``"constant"``.
+        min_lr: the schedule's floor.
+        plateau_factor, plateau_patience: the ``"plateau"`` schedule's settings.
+        patience: early stopping: stop after this many epochs without a validation loss below best − ``min_delta``.
+        min_delta: the improvement that counts (nats).
+        clip_norm: the gradients' global L2 norm is clipped to this; ``None`` = no clipping.
+        seed: the root of the training's random draws (shuffling, global-RNG use in the model).
+        balance: λ of balanced NPE (0 = plain NPE; Delaunoy et al. use 100).
+    """
+
+    epochs: int = 200
+    batch_size: int = 256
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    schedule: Literal["cosine", "plateau", "constant"] = "cosine"
+    min_lr: float = 1e-6
+    plateau_factor: float = 0.5
+    plateau_patience: int = 5
+    patience: int = 20
+    min_delta: float = 0.0
+    clip_norm: float | None = 5.0
+    seed: int = 0
+    balance: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("epochs", "batch_size", "patience", "plateau_patience"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"TrainingConfig.{name} must be an integer >= 1, got {v!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"TrainingConfig.seed must be an integer >= 0, got {self.seed!r}")
+        for name, low_ok in (("lr", False), ("weight_decay", True), ("min_lr", True), ("min_delta", True), ("balance", True)):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0 or (v == 0 and not low_ok):
+                raise ValueError(f"TrainingConfig.{name} must be a finite number {'>=' if low_ok else '>'} 0, got {v!r}")
+        if self.min_lr > self.lr:
+            raise ValueError(f"TrainingConfig.min_lr ({self.min_lr:g}) must not exceed lr ({self.lr:g})")
+        if not 0 < self.plateau_factor < 1:
+            raise ValueError(f"TrainingConfig.plateau_factor must be in (0, 1), got {self.plateau_factor!r}")
+        if self.schedule not in ("cosine", "plateau", "constant"):
+            raise ValueError(f"TrainingConfig.schedule must be 'cosine', 'plateau' or 'constant', got {self.schedule!r}")
+        if self.clip_norm is not None and not (isinstance(self.clip_norm, (int, float)) and self.clip_norm > 0):
+            raise ValueError(f"TrainingConfig.clip_norm must be > 0 or None, got {self.clip_norm!r}")
+
+
+@dataclass(frozen=True)
+class EpochRecord:
+    """One epoch of training, as handed to the callback (e.g. to log metrics).
+
+    Attributes:
+        epoch: 0-based epoch index.
+        train_loss, val_loss: mean loss (nats, physical units; ``nll + balance·penalty``).
+        train_nll, val_nll: mean −log q(θ | x) (nats, physical units).
+        train_penalty, val_penalty: mean balancing penalty (0 for plain NPE).
+        lr: the learning rate used during the epoch.
+        wall_time: seconds spent on the epoch (training + validation).
+        best_epoch: the best epoch so far (lowest ``val_loss``).
+        improved: whether this epoch is the new best.
+    """
+
+    epoch: int
+    train_loss: float
+    val_loss: float
+    train_nll: float
+    val_nll: float
+    train_penalty: float
+    val_penalty: float
+    lr: float
+    wall_time: float
+    best_epoch: int
+    improved: bool
+
+
+@dataclass
+class History:
+    """What :func:`train` returns: one :class:`EpochRecord` per epoch run, and the outcome.
+
+    Attributes:
+        records: per-epoch records, in order.
+        best_epoch: the epoch whose weights the model holds after training (-1 before any epoch).
+        best_val_loss: its validation loss.
+        stopped_early: whether early stopping ended the run before ``epochs``.
+    """
+
+    records: list[EpochRecord] = field(default_factory=list)
+    best_epoch: int = -1
+    best_val_loss: float = math.inf
+    stopped_early: bool = False
+
+    def column(self, name: str) -> list[float]:
+        """One field over epochs, e.g. ``history.column("val_loss")``."""
+        return [getattr(r, name) for r in self.records]
+
+    @property
+    def train_loss(self) -> list[float]:
+        return self.column("train_loss")
+
+    @property
+    def val_loss(self) -> list[float]:
+        return self.column("val_loss")
+
+    @property
+    def lr(self) -> list[float]:
+        return self.column("lr")
+
+    @property
+    def wall_time(self) -> list[float]:
+        return self.column("wall_time")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain Python (JSON-serializable) form."""
+        return {
+            "records": [asdict(r) for r in self.records],
+            "best_epoch": self.best_epoch,
+            "best_val_loss": self.best_val_loss,
+            "stopped_early": self.stopped_early,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> History:
+        return cls([EpochRecord(**r) for r in d["records"]], int(d["best_epoch"]), float(d["best_val_loss"]), bool(d["stopped_early"]))
+
+
+# --- input validation -----------------------------------------------------------------------------------
+
+
+def _as_tensor(a: object, what: str) -> Tensor:
+    if isinstance(a, Tensor):
+        return a.detach().cpu()
+    try:
+        return torch.as_tensor(np.asarray(a))
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{what} must be an array or tensor, got {type(a).__name__} ({err})") from None
+
+
+def check_split(name: str, data: tuple[object, object], model: NPE) -> tuple[Tensor, Tensor]:
+    """Validate one split ``(x, θ)`` for ``model`` and return ``(x float32, θ float64)`` CPU tensors.
+
+    Raises ``ValueError`` naming the split for: not a pair, empty, different lengths, x of the wrong shape or with
+    NaN/inf, θ of the wrong shape, non-finite or outside the prior box (naming the parameter and its range).
+    """
+    if not isinstance(data, (tuple, list)) or len(data) != 2:
+        raise ValueError(f"{name} split must be a pair (x, θ), got {type(data).__name__}")
+    x = _as_tensor(data[0], f"{name} x")
+    theta = _as_tensor(data[1], f"{name} θ")
+    if x.dim() == 0 or theta.dim() == 0:
+        raise ValueError(f"{name} split: x and θ need a leading sample axis, got shapes {tuple(x.shape)} and {tuple(theta.shape)}")
+    if x.shape[0] == 0 or theta.shape[0] == 0:
+        raise ValueError(f"{name} split is empty (x has {x.shape[0]} rows, θ has {theta.shape[0]})")
+    if x.shape[0] != theta.shape[0]:
+        raise ValueError(f"{name} split: x has {x.shape[0]} rows but θ has {theta.shape[0]}")
+    if model.input_shape is not None and tuple(x.shape[1:]) != model.input_shape:
+        raise ValueError(f"{name} x must have shape (n, {', '.join(map(str, model.input_shape))}), got {tuple(x.shape)}")
+    if not x.is_floating_point():
+        x = x.to(torch.float32)
+    finite = torch.isfinite(x.reshape(x.shape[0], -1)).all(dim=1)
+    if not bool(finite.all()):
+        row = int((~finite).nonzero()[0])
+        raise ValueError(f"{name} x contains NaN or infinite values ({int((~finite).sum())} rows, first at row {row})")
+    if theta.dim() != 2 or theta.shape[1] != model.dim:
+        raise ValueError(f"{name} θ must have shape (n, {model.dim}) ({', '.join(model.box.names)}), got {tuple(theta.shape)}")
+    theta = theta.to(torch.float64)
+    model.box.check(theta.numpy(), what=f"{name} θ")
+    return x.to(torch.float32), theta
+
+
+def _fingerprint(x: Tensor, theta: Tensor) -> str:
+    h = hashlib.sha256()
+    h.update(str(tuple(x.shape)).encode())
+    h.update(theta.numpy().tobytes())
+    h.update(np.float64(x.double().sum()).tobytes())
+    return h.hexdigest()
+
+
+# --- the loop ---------------------------------------------------------------------------------------------
+
+
+def _scheduler(opt: torch.optim.Optimizer, config: TrainingConfig) -> Any:
+    if config.schedule == "cosine":
+        return torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.epochs, eta_min=config.min_lr)
+    if config.schedule == "plateau":
+        return torch.optim.lr_scheduler.ReduceLROnPlateau(
+            opt, mode="min", factor=config.plateau_factor, patience=config.plateau_patience, min_lr=config.min_lr
+        )
+    return torch.optim.lr_scheduler.LambdaLR(opt, lambda _: 1.0)
+
+
+def _batches(n: int, size: int, order: Tensor | None = None) -> list[Tensor]:
+    idx = order if order is not None else torch.arange(n)
+    return list(torch.split(idx, size))
+
+
+def _evaluate(model: NPE, x: Tensor, theta: Tensor, config: TrainingConfig) -> tuple[float, float, float]:
+    """Mean (loss, nll, penalty) over fixed batches of the validation set, weighted by batch size."""
+    model.eval()
+    totals = np.zeros(3)
+    with torch.no_grad():
+        for idx in _batches(x.shape[0], config.batch_size):
+            parts = npe_loss(model, theta[idx], x[idx], balance=config.balance)
+            totals += len(idx) * np.array([float(parts.loss.detach()), parts.nll, parts.penalty])
+    return tuple(float(v) for v in totals / x.shape[0])  # type: ignore[return-value]
+
+
+def _fork_devices(model: NPE) -> list[int]:
+    dev = model.device
+    return [dev.index or 0] if dev.type == "cuda" else []
+
+
+def _clone_state(model: NPE) -> dict[str, Tensor]:
+    return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def train(
+    model: NPE,
+    train_set: tuple[object, object],
+    val_set: tuple[object, object],
+    config: TrainingConfig = TrainingConfig(),
+    *,
+    checkpoint: str | Path | None = None,
+    callback: Callable[[EpochRecord], None] | None = None,
+    progress: bool = True,
+) -> History:
+    """Fit ``model`` to simulations by (balanced) NPE; the model ends with its best epoch's weights.
+
+    Arguments:
+        model: the estimator; its standardization is fitted here on the training x (unless resuming).
+        train_set, val_set: ``(x (n, *input_shape), θ (n, d))`` arrays or tensors, θ in physical units inside
+            ``model.box`` (drawn from the uniform prior on it). Validated before any training.
+        config: the settings.
+        checkpoint: a file path; after every epoch the full training state is written there atomically. If the
+            file exists, training resumes from it (same config and data required; a finished run just restores
+            the best weights and returns its history).
+        callback: called after each epoch (after the checkpoint is written) with its :class:`EpochRecord`.
+        progress: show a tqdm progress bar over epochs.
+
+    Returns:
+        the :class:`History`; the model is left in eval mode.
+    """
+    if not isinstance(model, NPE):
+        raise TypeError(f"model must be an NPE, got {type(model).__name__}")
+    if not isinstance(config, TrainingConfig):
+        raise TypeError(f"config must be a TrainingConfig, got {type(config).__name__}")
+    x_tr, th_tr = check_split("train", train_set, model)
+    x_va, th_va = check_split("val", val_set, model)
+    fingerprint = _fingerprint(x_tr, th_tr) + _fingerprint(x_va, th_va)
+    device = model.device
+
+    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    sched = _scheduler(opt, config)
+    history = History()
+    best_state: dict[str, Tensor] | None = None
+    bad_epochs = 0
+    start = 0
+
+    state = load_checkpoint(checkpoint) if checkpoint is not None else None
+    if state is not None:
+        if state.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(f"checkpoint {checkpoint} has format {state.get('format')!r}, expected {CHECKPOINT_FORMAT}")
+        saved = state["config"]
+        diff = [f.name for f in fields(config) if saved.get(f.name) != getattr(config, f.name)]
+        if diff:
+            raise ValueError(f"checkpoint {checkpoint} was written with other training settings ({', '.join(diff)}); "
+                             "delete it or use another path")
+        if state["data"] != fingerprint:
+            raise ValueError(f"checkpoint {checkpoint} was written for other training/validation data; delete it or use another path")
+        try:
+            model.load_state_dict(state["model"])
+        except RuntimeError as err:
+            raise ValueError(f"checkpoint {checkpoint} does not fit this model's architecture: {err}") from None
+        history = History.from_dict(state["history"])
+        best_state = state["best_model"]
+        if state["finished"]:
+            model.load_state_dict(best_state)
+            model.eval()
+            return history
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        bad_epochs = int(state["bad_epochs"])
+        # killed between the early stop's checkpoint and the final write: nothing left to train
+        start = config.epochs if history.stopped_early else int(state["epoch"]) + 1
+    else:
+        model.fit_standardization(x_tr)
+
+    def write(epoch: int, finished: bool) -> None:
+        if checkpoint is None:
+            return
+        save_checkpoint(
+            {
+                "format": CHECKPOINT_FORMAT,
+                "epoch": epoch,
+                "finished": finished,
+                "config": asdict(config),
+                "data": fingerprint,
+                "model": model.state_dict(),
+                "best_model": best_state,
+                "optimizer": opt.state_dict(),
+                "scheduler": sched.state_dict(),
+                "bad_epochs": bad_epochs,
+                "history": history.to_dict(),
+            },
+            checkpoint,
+        )
+
+    n = x_tr.shape[0]
+    bar = tqdm(total=config.epochs, initial=start, desc="train NPE", unit="epoch", disable=not progress, leave=False)
+    try:
+        for epoch in range(start, config.epochs):
+            t0 = time.perf_counter()
+            lr = float(opt.param_groups[0]["lr"])
+            shuffle = torch.Generator().manual_seed(seeding.derive_seed(config.seed, "train", "shuffle", epoch))
+            order = torch.randperm(n, generator=shuffle)
+            sums = np.zeros(3)
+            model.train()
+            with torch.random.fork_rng(devices=_fork_devices(model)):
+                torch.manual_seed(seeding.derive_seed(config.seed, "train", "torch", epoch))
+                for b, idx in enumerate(_batches(n, config.batch_size, order)):
+                    parts = npe_loss(model, th_tr[idx].to(device), x_tr[idx].to(device), balance=config.balance)
+                    if not torch.isfinite(parts.loss):
+                        raise FloatingPointError(
+                            f"non-finite training loss at epoch {epoch}, batch {b} (nll {parts.nll}, penalty {parts.penalty}); "
+                            "lower TrainingConfig.lr or set clip_norm"
+                        )
+                    opt.zero_grad(set_to_none=True)
+                    parts.loss.backward()
+                    if config.clip_norm is not None:
+                        torch.nn.utils.clip_grad_norm_(model.parameters(), config.clip_norm)
+                    opt.step()
+                    sums += len(idx) * np.array([float(parts.loss.detach()), parts.nll, parts.penalty])
+            train_loss, train_nll, train_pen = (float(v) for v in sums / n)
+            val_loss, val_nll, val_pen = _evaluate(model, x_va, th_va, config)
+            if not math.isfinite(val_loss):
+                raise FloatingPointError(f"non-finite validation loss at epoch {epoch}; lower TrainingConfig.lr")
+            if config.schedule == "plateau":
+                sched.step(val_loss)
+            else:
+                sched.step()
+            improved = val_loss < history.best_val_loss - config.min_delta
+            if improved:
+                history.best_epoch, history.best_val_loss = epoch, val_loss
+                best_state = _clone_state(model)
+                bad_epochs = 0
+            else:
+                bad_epochs += 1
+            record = EpochRecord(
+                epoch, train_loss, val_loss, train_nll, val_nll, train_pen, val_pen, lr,
+                time.perf_counter() - t0, history.best_epoch, improved,
+            )
+            history.records.append(record)
+            stop = bad_epochs >= config.patience and epoch + 1 < config.epochs
+            history.stopped_early = stop
+            write(epoch, finished=False)
+            if callback is not None:
+                callback(record)
+            bar.update(1)
+            bar.set_postfix(train=f"{train_loss:.3f}", val=f"{val_loss:.3f}", best=history.best_epoch)
+            if stop:
+                break
+    finally:
+        bar.close()
+    if best_state is not None:
+        model.load_state_dict(best_state)
+    model.eval()
+    write(history.records[-1].epoch if history.records else -1, finished=True)
+    return history

@@ -1,0 +1,99 @@
+"""HPD credibility, expected coverage and superiority π on posteriors known in closed form (numpy only).
+
+Toy: θ ~ N(0, I₂), x = θ + s·ε (s = 0.7); the exact posterior is N(x/(1+s²), s²/(1+s²)·I₂). A posterior with its
+standard deviation × 0.5 is overconfident (too narrow), × 2 underconfident (too wide). With n = 2000 images and
+S = 1000 draws each, the exact posterior's α(i) are uniform up to 1/S, so its calibration error stays below the
+KS 99.9 % band 1.95/√n ≈ 0.044 plus 2/S.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from components import seeding
+from components.diagnostics import (
+    DEFAULT_LEVELS,
+    calibration_error,
+    coverage_error,
+    expected_coverage,
+    hpd_credibility,
+    superiority,
+)
+
+S_NOISE = 0.7
+N_OBS, N_SAMPLES = 2000, 1000
+TOLERANCE = 1.95 / math.sqrt(N_OBS) + 2 / N_SAMPLES
+
+
+def _log_normal(theta: np.ndarray, mean: np.ndarray, sd: float) -> np.ndarray:
+    return (-0.5 * ((theta - mean) / sd) ** 2 - math.log(sd) - 0.5 * math.log(2 * math.pi)).sum(-1)
+
+
+def _credibility_and_pi(width: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """α(i) and π(i) of the posterior N(mean, (width·sd)²) for N_OBS simulated (θ*, x)."""
+    rng = seeding.rng(seed, "test", "diagnostics", int(width * 100))
+    theta = rng.normal(size=(N_OBS, 2))
+    x = theta + S_NOISE * rng.normal(size=(N_OBS, 2))
+    mean, sd = x / (1 + S_NOISE**2), width * math.sqrt(S_NOISE**2 / (1 + S_NOISE**2))
+    draws = mean[:, None, :] + sd * rng.normal(size=(N_OBS, N_SAMPLES, 2))
+    log_samples = _log_normal(draws, mean[:, None, :], sd)
+    log_truth = _log_normal(theta, mean, sd)
+    return hpd_credibility(log_samples, log_truth), superiority(log_samples, log_truth)
+
+
+def test_exact_posterior_coverage_is_diagonal() -> None:
+    cred, _ = _credibility_and_pi(1.0)
+    assert calibration_error(cred) < TOLERANCE
+    np.testing.assert_allclose(expected_coverage(cred, DEFAULT_LEVELS), DEFAULT_LEVELS, atol=TOLERANCE)
+
+
+def test_too_narrow_is_below_and_too_wide_is_above_the_diagonal() -> None:
+    narrow, _ = _credibility_and_pi(0.5)
+    wide, _ = _credibility_and_pi(2.0)
+    inner = DEFAULT_LEVELS[1:-1]
+    assert (expected_coverage(narrow, inner) < inner).all() and (expected_coverage(wide, inner) > inner).all()
+    assert coverage_error(narrow) < -0.2 and coverage_error(wide) > 0.2
+    # closed forms in 2-D: the HPD region at level l is a disc of radius² −2·log(1 − l) (in the model's sd), and
+    # |w* − mean|² / sd_true² ~ χ²₂, so c(l) = 1 − (1 − l)^(k²) for a model sd of k × the true sd
+    np.testing.assert_allclose(expected_coverage(narrow, DEFAULT_LEVELS), 1 - (1 - DEFAULT_LEVELS) ** 0.25, atol=TOLERANCE)
+    np.testing.assert_allclose(expected_coverage(wide, DEFAULT_LEVELS), 1 - (1 - DEFAULT_LEVELS) ** 4, atol=TOLERANCE)
+
+
+def test_superiority_of_exact_posterior_is_uniform() -> None:
+    _, pi = _credibility_and_pi(1.0, seed=1)
+    assert stats.kstest(pi, "uniform").pvalue > 1e-3
+    _, pi_narrow = _credibility_and_pi(0.5, seed=1)
+    assert stats.kstest(pi_narrow, "uniform").pvalue < 1e-6
+    assert np.median(pi_narrow) < 0.3  # the ground truth is less credible than most draws of an overconfident model
+
+
+def test_definitions_on_small_arrays() -> None:
+    log_samples = np.array([[0.0, 1.0, 2.0, 3.0], [5.0, 5.0, 5.0, 5.0]])
+    log_truth = np.array([1.0, 6.0])
+    np.testing.assert_array_equal(hpd_credibility(log_samples, log_truth), [0.75, 0.0])
+    np.testing.assert_array_equal(superiority(log_samples, log_truth), [0.5, 1.0])
+    cred = np.array([0.1, 0.2, 0.2, 0.9])
+    np.testing.assert_array_equal(expected_coverage(cred, [0.0, 0.1, 0.2, 0.5, 1.0]), [0.0, 0.25, 0.75, 0.75, 1.0])
+    # the exact supremum over l is the Kolmogorov–Smirnov distance to the uniform distribution
+    rng = seeding.rng(0, "test", "ks")
+    a = rng.random(50) ** 1.5
+    assert calibration_error(a) == pytest.approx(stats.kstest(a, "uniform").statistic, abs=1e-12)
+    assert calibration_error(a) >= calibration_error(a, DEFAULT_LEVELS)
+    assert abs(coverage_error(a)) == calibration_error(a)
+
+
+def test_bad_inputs_name_the_problem() -> None:
+    with pytest.raises(ValueError, match=r"log_prob_truth must have shape \(n_obs,\) = \(2,\)"):
+        hpd_credibility(np.zeros((2, 5)), np.zeros(3))
+    with pytest.raises(ValueError, match="log_prob_samples must have shape"):
+        superiority(np.zeros(5), np.zeros(5))
+    with pytest.raises(ValueError, match="NaN"):
+        hpd_credibility(np.array([[np.nan]]), np.zeros(1))
+    with pytest.raises(ValueError, match=r"credibility values must lie in \[0, 1\]"):
+        expected_coverage(np.array([1.5]))
+    with pytest.raises(ValueError, match="credible levels"):
+        expected_coverage(np.array([0.5]), [2.0])

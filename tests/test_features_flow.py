@@ -1,0 +1,81 @@
+"""The features stage: cached backbone outputs aligned with the data, reused when valid, recomputed when stale."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from components import dataset, features
+from components.backbones import get_backbone
+from tests.conftest import write_params
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory, prefect_harness):
+    from flows.generate import generate
+
+    folder = tmp_path_factory.mktemp("features")
+    params = write_params(folder)
+    generate(str(params))
+    return folder, params
+
+
+def test_frozen_features_match_the_backbone_and_are_reused(generated):
+    from flows.features import extract_features
+
+    folder, params = generated
+    manifest = extract_features("cues", str(params))
+    assert manifest["kind"] == "features" and manifest["splits"]["train"]["count"] == 24
+    train = dataset.open_split(folder / "data", "train")
+    cached = features.open_features(folder / "features", "cues", train)
+    expected = get_backbone("cues").extract(train.images())
+    np.testing.assert_allclose(cached, expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(features.open_features(folder / "features", "cues", train, stop=10), cached[:10])
+
+    shard = folder / "features/cues/train/shard-00000.npy"
+    mtime = shard.stat().st_mtime_ns
+    extract_features("cues", str(params))
+    assert shard.stat().st_mtime_ns == mtime, "valid cached features were recomputed"
+
+    # a damaged cache shard is recomputed, not read
+    shard.write_bytes(shard.read_bytes()[:64])
+    with pytest.raises(features.FeatureError, match="missing or stale"):
+        features.open_features(folder / "features", "cues", train)
+    extract_features("cues", str(params))
+    np.testing.assert_allclose(features.open_features(folder / "features", "cues", train), cached, rtol=1e-6)
+
+
+def test_trainable_backbone_caches_its_input(generated):
+    from flows.features import extract_features
+
+    folder, params = generated
+    manifest = extract_features("cnn", str(params))
+    assert manifest["kind"] == "inputs"
+    val = dataset.open_split(folder / "data", "val")
+    inputs = features.open_features(folder / "features", "cnn", val)
+    cnn = get_backbone("cnn")
+    assert inputs.dtype == np.uint8 and inputs.shape == (8, *cnn.input_size, 3)
+
+
+def test_features_of_another_dataset_are_refused(generated, tmp_path):
+    from flows.features import extract_features
+
+    folder, params = generated
+    extract_features("tiny", str(params))
+    manifest_path = folder / "features/tiny/manifest.json"
+    m = json.loads(manifest_path.read_text())
+    m["dataset_content_hash"] = "0" * 64
+    manifest_path.write_text(json.dumps(m))
+    train = dataset.open_split(folder / "data", "train")
+    with pytest.raises(features.FeatureError, match="computed on another dataset"):
+        features.open_features(folder / "features", "tiny", train)
+
+
+def test_unknown_backbone_is_named(generated):
+    from flows.features import extract_features
+
+    _, params = generated
+    with pytest.raises(ValueError, match=r"backbone 'resnet' is not in backbones.names"):
+        extract_features("resnet", str(params))

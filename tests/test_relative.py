@@ -1,0 +1,266 @@
+"""Task III: mixture weights on the simplex, the mean squared gap, and the ODD decision.
+
+Domains are bags under the closed-form posterior q(θ | x) = N(θ; x, σ²I) (see tests/test_domain.py). Sources are
+bags of observations drawn uniformly in disjoint boxes; an in-ODD target is a *fresh* bag drawn from a mixture of the
+source boxes (only approximately a mixture of the source characterizations, as in the paper), an exact in-ODD
+target is :func:`mixture_of` the sources, and out-of-ODD targets put mass in a box no source covers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from components.domain import Domain, mixture_of
+from components.relative import (
+    OddDetector,
+    Relation,
+    SimplexLeastSquares,
+    chance_baseline_gap,
+    fit_weights,
+    mean_squared_gap,
+    relate,
+    simplex_distance,
+)
+from components.seeding import rng
+from tests.test_domain import GaussianPosterior
+
+LAMBDA = np.array([0.2, 0.3, 0.5])
+SOURCE_BOXES = [((0.0, 0.0), (2.0, 2.0)), ((3.0, 0.0), (5.0, 2.0)), ((0.0, 3.0), (2.0, 5.0))]
+OUT_BOX = ((8.0, 8.0), (10.0, 10.0))
+
+
+def uniform_in(box, n: int, r: np.random.Generator) -> np.ndarray:
+    lo, hi = np.asarray(box[0]), np.asarray(box[1])
+    return lo + (hi - lo) * r.random((n, lo.size))
+
+
+@pytest.fixture(scope="module")
+def world():
+    post = GaussianPosterior(0.5)
+    r = rng(0, "test", "sources")
+    sources = [Domain(post, uniform_in(box, n, r)) for box, n in zip(SOURCE_BOXES, (27, 21, 26))]
+    return post, sources
+
+
+def in_odd_target(post, seed: int, lam=LAMBDA, n: int = 60) -> Domain:
+    """A fresh bag whose observations follow Σₖ λₖ U(Ωₖ)."""
+    r = rng(seed, "test", "in-odd")
+    which = r.choice(len(SOURCE_BOXES), size=n, p=lam)
+    return Domain(post, np.stack([uniform_in(SOURCE_BOXES[k], 1, r)[0] for k in which]))
+
+
+def out_odd_target(post, seed: int, eta: float = 0.5) -> Domain:
+    """(1 − η) · in-ODD bag + η · a bag in a box no source covers (randomly weighted, as in the paper)."""
+    r = rng(seed, "test", "out-odd")
+    outside = Domain(post, uniform_in(OUT_BOX, 30, r), r.random(30))
+    return mixture_of([in_odd_target(post, seed), outside], [1 - eta, eta])
+
+
+def test_exact_mixture_weights_are_recovered(world):
+    post, sources = world
+    target = mixture_of(sources, LAMBDA)
+    rel = relate(target, sources, n_points=16, seed=1)
+    assert isinstance(rel, Relation) and not rel.degenerate
+    assert rel.points.shape == (16, 2) and rel.A.shape == (16, 3) and rel.b.shape == (16,)
+    assert simplex_distance(rel.weights, LAMBDA) < 1e-3
+    assert rel.gap < 1e-10 * np.mean(rel.b**2)  # δ ≈ 0 relative to the density scale
+    expected = mean_squared_gap(rel.A, rel.b, rel.weights)
+    np.testing.assert_allclose(rel.gap, expected, rtol=1e-6, atol=1e-16 * np.mean(rel.b**2))
+
+
+def test_recovery_with_huge_six_dimensional_densities():
+    # σ = 2e-3 in 6-D: densities ~ 1e15 (physical units); the common scale keeps the QP well posed
+    post = GaussianPosterior(2e-3)
+    r = rng(2, "test", "six-d")
+    sources = [Domain(post, r.uniform(20 * k, 20 * k + 10, size=(20, 6))) for k in range(3)]
+    target = mixture_of(sources, LAMBDA)
+    rel = relate(target, sources, n_points=16, seed=3)
+    assert rel.b.max() > 1e10 and rel.scale > 1e10
+    assert simplex_distance(rel.weights, LAMBDA) < 1e-3
+    assert rel.gap < 1e-10 * np.mean(rel.b**2)
+
+
+def test_weights_and_gap_are_invariant_to_the_density_scale():
+    r = rng(3, "test", "scale")
+    A, b = r.random((16, 3)), r.random(16)
+    lam, gap = fit_weights(A, b)
+    for c in (1e-120, 1e120):
+        lam_c, gap_c = fit_weights(A * c, b * c)
+        np.testing.assert_allclose(lam_c, lam, atol=1e-6)
+        assert gap_c == pytest.approx(gap * c * c, rel=1e-5)
+
+
+def test_fit_weights_is_the_simplex_minimizer():
+    # compare with an exhaustive grid over the 2-simplex: no grid point beats the QP's λ̂
+    r = rng(4, "test", "grid")
+    step = 0.005
+    g = np.arange(0, 1 + step / 2, step)
+    l1, l2 = np.meshgrid(g, g, indexing="ij")
+    keep = l1 + l2 <= 1 + 1e-12
+    grid = np.column_stack([l1[keep], l2[keep], np.clip(1 - l1[keep] - l2[keep], 0, None)])
+    for trial in range(5):
+        A, b = r.random((16, 3)), r.random(16) * (1 + trial)
+        lam, gap = fit_weights(A, b)
+        assert np.all(lam >= 0) and lam.sum() == pytest.approx(1.0, abs=1e-12)
+        assert gap == pytest.approx(float(mean_squared_gap(A, b, lam)), rel=1e-12)
+        assert gap <= mean_squared_gap(A, b, grid).min() * (1 + 1e-6) + 1e-15
+
+
+def test_out_of_odd_targets_have_much_larger_gaps(world):
+    post, sources = world
+    rel_in = [relate(in_odd_target(post, s), sources, 16, seed=s) for s in range(20)]
+    rel_out = [relate(out_odd_target(post, s, 0.5), sources, 16, seed=s) for s in range(20)]
+    # δ itself (the paper's statistic, fixed λ): an order of magnitude apart in the median
+    assert np.median([r.gap for r in rel_out]) > 5 * np.median([r.gap for r in rel_in])
+    # the scale-free relative gap separates the two groups completely
+    assert min(r.relative_gap for r in rel_out) > 2 * max(r.relative_gap for r in rel_in)
+    assert all(0 <= r.relative_gap for r in rel_in + rel_out)
+
+
+def test_chance_baseline_is_never_below_the_fitted_gap(world):
+    post, sources = world
+    rel = relate(in_odd_target(post, 7), sources, 16, seed=7)
+    chance = chance_baseline_gap(rel.A, rel.b, seed=7, n_draws=500)
+    assert chance.shape == (500,)
+    assert np.all(chance >= rel.gap * (1 - 1e-6))
+    assert np.median(chance) > 5 * rel.gap  # the fitted weights are far better than chance in the ODD
+
+
+def test_odd_detector_false_alarm_rate_on_fresh_in_odd_gaps(world):
+    # in-ODD targets with random λ (Dirichlet(1,1,1)); the statistic is the relative gap (scale-free)
+    post, sources = world
+    r = rng(8, "test", "odd-lambdas")
+
+    def gaps(first: int, count: int) -> np.ndarray:
+        lams = r.dirichlet(np.ones(3), size=count)
+        rels = [relate(in_odd_target(post, first + i, lam), sources, 16, first + i) for i, lam in enumerate(lams)]
+        return np.array([rel.relative_gap for rel in rels])
+
+    alpha = 0.05
+    detector = OddDetector.calibrate(gaps(1000, 199), alpha)
+    assert detector.n_calibration == 199 and detector.false_alarm_rate == alpha
+    fresh = gaps(5000, 300)
+    rate = detector.decide_many(fresh).mean()
+    # conditional on the calibration set the rate is Beta(10, 190) (sd 0.015), plus binomial noise over 300 (sd 0.013)
+    assert abs(rate - alpha) < 4 * np.hypot(0.015, 0.013), rate
+    outside = [relate(out_odd_target(post, s, 0.5), sources, 16, seed=s).relative_gap for s in range(10)]
+    assert all(detector.decide(g) for g in outside)
+
+
+def test_odd_detector_finite_sample_rank_gives_the_stated_rate():
+    # exchangeable continuous gaps: P(fresh gap > r-th of n) = 1 − r/(n+1) exactly, here 1 − 38/40 = 0.05
+    r = rng(9, "test", "conformal")
+    reps, n, alpha = 4000, 39, 0.05
+    samples = r.exponential(size=(reps, n + 1))
+    flags = [OddDetector.calibrate(row[:n], alpha).decide(row[n]) for row in samples]
+    sd = np.sqrt(alpha * (1 - alpha) / reps)
+    assert abs(np.mean(flags) - alpha) < 4 * sd
+
+
+def test_odd_detector_errors():
+    with pytest.raises(ValueError, match="too few for false_alarm_rate 0.05: need at least 19"):
+        OddDetector.calibrate(np.ones(18), 0.05)
+    assert OddDetector.calibrate(np.arange(19.0), 0.05).threshold == 18.0
+    with pytest.raises(ValueError, match="false_alarm_rate must be in"):
+        OddDetector.calibrate(np.ones(100), 0.0)
+    with pytest.raises(ValueError, match="finite and non-negative"):
+        OddDetector.calibrate(np.array([1.0, np.nan] * 50))
+    det = OddDetector.calibrate(np.arange(100.0), 0.1)
+    assert det.threshold == 90.0 and det.decide(90.5) and not det.decide(90.0)
+    with pytest.raises(ValueError, match="gap must be"):
+        det.decide(float("nan"))
+
+
+def test_identical_sources_are_flagged_degenerate_with_minimum_norm_weights(world):
+    post, sources = world
+    s1, s2 = sources[0], sources[1]
+    target = mixture_of([s1, s2], [0.6, 0.4])
+    rel = relate(target, [s1, s1, s2], n_points=16, seed=10)
+    assert rel.degenerate
+    # every λ with λ₁ + λ₂ = 0.6, λ₃ = 0.4 is optimal; the minimum-norm one splits 0.6 evenly
+    np.testing.assert_allclose(rel.weights, [0.3, 0.3, 0.4], atol=1e-3)
+    assert rel.gap < 1e-10 * np.mean(rel.b**2)
+    assert not relate(target, [s1, s2], n_points=16, seed=10).degenerate
+
+
+def test_single_source_gives_trivial_weight_and_a_meaningful_gap(world):
+    post, sources = world
+    same = relate(sources[0], [sources[0]], n_points=16, seed=11)
+    np.testing.assert_array_equal(same.weights, [1.0])
+    assert same.gap == 0.0 and not same.degenerate
+    other = relate(sources[0], [sources[1]], n_points=16, seed=11)
+    np.testing.assert_array_equal(other.weights, [1.0])
+    np.testing.assert_allclose(other.gap, np.mean((other.A[:, 0] - other.b) ** 2), rtol=1e-12)
+    assert other.gap > 0.1 * np.mean(other.b**2)
+
+
+def test_parametrized_problem_is_reused_across_solves(world):
+    post, sources = world
+    solver = SimplexLeastSquares()
+    problem = solver.problem(16, 3)
+    assert problem.is_dpp() and solver.solver == "CLARABEL"
+    target = mixture_of(sources, LAMBDA)
+    for seed in range(330):
+        rel = relate(target, sources, 16, seed=seed, solver=solver)
+        assert solver.problem(16, 3) is problem
+        assert simplex_distance(rel.weights, LAMBDA) < 1e-3
+    assert solver.problem(32, 3) is not problem  # another shape, another cached problem
+
+
+def test_osqp_solver_agrees(world):
+    post, sources = world
+    rel = relate(mixture_of(sources, LAMBDA), sources, 16, seed=12, solver=SimplexLeastSquares("OSQP"))
+    assert simplex_distance(rel.weights, LAMBDA) < 1e-2
+
+
+class NaNDensity:
+    """A characterization whose log-density is broken (NaN): relate must name it."""
+
+    def log_prob(self, theta: np.ndarray) -> np.ndarray:
+        return np.full(theta.shape[0], np.nan)
+
+    def sample(self, n: int, seed: int) -> np.ndarray:
+        return np.zeros((n, 2))
+
+
+class ZeroDensity:
+    """An inconsistent characterization: it draws points where its own density is zero."""
+
+    def log_prob(self, theta: np.ndarray) -> np.ndarray:
+        return np.full(theta.shape[0], -np.inf)
+
+    def sample(self, n: int, seed: int) -> np.ndarray:
+        return np.zeros((n, 2))
+
+
+def test_bad_inputs_give_clear_errors(world):
+    post, sources = world
+    target = mixture_of(sources, LAMBDA)
+    with pytest.raises(ValueError, match="at least one source"):
+        relate(target, [], 16, seed=0)
+    with pytest.raises(ValueError, match="n_points = 2 cannot determine 3"):
+        relate(target, sources, 2, seed=0)
+    with pytest.raises(ValueError, match="sources\\[1\\].log_prob returned NaN"):
+        relate(target, [sources[0], NaNDensity()], 16, seed=0)
+    with pytest.raises(TypeError, match="sequence"):
+        relate(target, sources[0], 16, seed=0)
+    with pytest.raises(TypeError, match=r"sources\[0\] must have log_prob"):
+        relate(target, [object()], 16, seed=0)
+    with pytest.raises(ValueError, match="target density is zero"):
+        relate(ZeroDensity(), sources, 16, seed=0)
+    A = np.ones((16, 3))
+    with pytest.raises(ValueError, match="A \\(densities\\) must be finite"):
+        fit_weights(np.where(np.eye(16, 3) > 0, np.inf, A), np.ones(16))
+    with pytest.raises(ValueError, match="b \\(densities\\) must be non-negative"):
+        fit_weights(A, -np.ones(16))
+    with pytest.raises(ValueError, match=r"b must have shape \(16,\)"):
+        fit_weights(A, np.ones(15))
+    with pytest.raises(ValueError, match="need n_W ≥ K"):
+        fit_weights(np.ones((2, 3)), np.ones(2))
+    with pytest.raises(ValueError, match="not installed"):
+        SimplexLeastSquares("NO-SUCH-SOLVER")
+    with pytest.raises(ValueError, match="simplex"):
+        simplex_distance([0.5, 0.6], [0.5, 0.5])
+    with pytest.raises(ValueError, match="different numbers"):
+        simplex_distance([0.5, 0.5], [0.2, 0.3, 0.5])

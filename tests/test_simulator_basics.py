@@ -1,0 +1,143 @@
+"""The procedural simulator's contract: shape, determinism, caching, validation, scenes, sheet."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from components.simulator import ProceduralSimulator, Simulator
+from components.simulator.calibration import CALIBRATION, calibration_hash, calibration_rows
+from components.simulator.contact_sheet import contact_sheet, save_png
+from components.weather import PREDICTED
+
+DAY = {
+    "cloudiness": 30.0,
+    "fog_density": 10.0,
+    "precipitation": 40.0,
+    "sun_altitude_angle": 35.0,
+    "wind_intensity": 50.0,
+    "precipitation_deposits": 40.0,
+    "sun_azimuth_angle": 200.0,
+}
+
+
+@pytest.fixture(scope="module")
+def sim() -> ProceduralSimulator:
+    return ProceduralSimulator(64, 64)
+
+
+def test_render_is_rgb_uint8_of_the_requested_size_and_follows_the_protocol() -> None:
+    s = ProceduralSimulator(48, 80)
+    img = s.render(DAY, 1)
+    assert img.shape == (48, 80, 3) and img.dtype == np.uint8
+    assert isinstance(s, Simulator)
+    assert s.version.startswith("procedural-") and s.version.endswith(calibration_hash())
+    assert 20 < img.mean() < 235 and img.std() > 5
+
+
+def test_same_weather_and_seed_is_byte_identical_across_fresh_instances(sim: ProceduralSimulator) -> None:
+    a = sim.render(DAY, 7)
+    b = sim.render(DAY, 7)
+    c = ProceduralSimulator(64, 64).render(DAY, 7)
+    assert a.tobytes() == b.tobytes() == c.tobytes()
+    assert sim.render(DAY, 8).tobytes() != a.tobytes()
+
+
+def test_rendering_never_changes_the_cached_geometry(sim: ProceduralSimulator) -> None:
+    sc = sim.scene(11)
+    before = {f.name: getattr(sc, f.name).copy() for f in dataclasses.fields(sc) if isinstance(getattr(sc, f.name), np.ndarray)}
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        w = {n: float(rng.uniform(0, 100)) for n in PREDICTED}
+        w["sun_altitude_angle"] = float(rng.uniform(-90, 90))
+        w["sun_azimuth_angle"] = float(rng.uniform(0, 360))
+        sim.render(w, 11)
+    assert sim.scene(11) is sc
+    for name, arr in before.items():
+        np.testing.assert_array_equal(getattr(sc, name), arr, err_msg=name)
+    fresh = ProceduralSimulator(64, 64).scene(11)
+    np.testing.assert_array_equal(fresh.depth, sc.depth)
+    np.testing.assert_array_equal(fresh.material, sc.material)
+
+
+def test_scene_cache_is_bounded() -> None:
+    s = ProceduralSimulator(32, 32, cache_size=3)
+    for seed in range(6):
+        s.scene(seed)
+    assert len(s._cache) == 3 and list(s._cache) == [3, 4, 5]
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        ({"fog_density": 101.0}, "fog_density"),
+        ({"sun_altitude_angle": -91.0}, "sun_altitude_angle"),
+        ({"cloudiness": math.nan}, "cloudiness"),
+        ({"precipitation": "heavy"}, "precipitation"),
+        ({"snow": 3.0}, "snow"),
+        ({"wetness": 50.0}, "wetness"),
+    ],
+)
+def test_bad_weather_is_a_value_error_naming_the_parameter(sim: ProceduralSimulator, change: dict, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        sim.render({**DAY, **change}, 1)
+
+
+def test_missing_parameter_and_bad_seed_are_clear_errors(sim: ProceduralSimulator) -> None:
+    w = dict(DAY)
+    del w["wind_intensity"]
+    with pytest.raises(ValueError, match="wind_intensity"):
+        sim.render(w, 1)
+    for seed in (-1, 1.5, "3", True, None):
+        with pytest.raises(ValueError, match="scene_seed"):
+            sim.render(DAY, seed)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="scene_seed"):
+        sim.scene(-4)
+
+
+def test_scene_nuisance_varies_across_seeds_like_carla_data() -> None:
+    s = ProceduralSimulator(32, 32, cache_size=64)
+    layouts = [s.scene(seed).layout for seed in range(40)]
+    assert {lay.archetype for lay in layouts} == set(CALIBRATION.archetypes)
+    for lay in layouts:
+        assert lay.camera[1] == pytest.approx(1.3 * (0.5 + lay.ego_extent_z))
+        assert 1.4 < lay.camera[1] < 2.8
+        assert CALIBRATION.fov_deg[0] <= lay.fov_deg <= CALIBRATION.fov_deg[1]
+    headings = np.array([lay.heading_deg for lay in layouts])
+    assert headings.min() < 60 and headings.max() > 300
+    n_vehicles = [int((lay.box_material == 7).sum()) for lay in layouts]
+    assert len(set(n_vehicles)) > 5
+
+
+def test_calibration_table_has_units_and_meanings_and_drives_the_version() -> None:
+    rows = calibration_rows()
+    assert len(rows) > 40
+    for name, value, unit, meaning in rows:
+        assert unit and len(meaning) > 5, name
+    other = dataclasses.replace(CALIBRATION, fog_extinction=0.05)
+    assert calibration_hash(other) != calibration_hash()
+    assert ProceduralSimulator(32, 32, calibration=other).version != ProceduralSimulator(32, 32).version
+    a = ProceduralSimulator(32, 32).render({**DAY, "fog_density": 60.0}, 2)
+    b = ProceduralSimulator(32, 32, calibration=other).render({**DAY, "fog_density": 60.0}, 2)
+    assert a.tobytes() != b.tobytes()
+
+
+def test_contact_sheet_layout_and_atomic_png(tmp_path) -> None:
+    s = ProceduralSimulator(32, 32)
+    sheet = contact_sheet(s, [0, 1], steps=3)
+    label_w = int(round(32 * 1.1))
+    assert sheet.shape == (2 * 6 * 32, label_w + 3 * 32, 3) and sheet.dtype == np.uint8
+    assert sheet[:, :label_w].std() > 0  # labels were drawn
+    path = tmp_path / "sub" / "sheet.png"
+    save_png(path, sheet)
+    back = cv2.imread(str(path), cv2.IMREAD_COLOR)[:, :, ::-1]
+    np.testing.assert_array_equal(back, sheet)
+    assert [p.name for p in path.parent.iterdir()] == ["sheet.png"]
+    with pytest.raises(ValueError, match="steps"):
+        contact_sheet(s, [0], steps=1)
+    with pytest.raises(ValueError, match="uint8"):
+        save_png(path, sheet.astype(np.float32))

@@ -109,10 +109,38 @@ class BackbonesConfig(_Section):
     batch_size: PositiveInt = 256
 
 
-class TrainConfig(_Section):
-    """The training-set sizes of the grid (nested prefixes of the train split)."""
+class FlowParams(_Section):
+    """The conditional neural spline flow (``components.posterior.FlowConfig``)."""
 
+    transforms: PositiveInt = 3
+    hidden_features: tuple[PositiveInt, ...] = (128, 128)
+    bins: Annotated[int, Field(ge=2)] = 8
+    #: 2 = coupling flow (fast sampling); null = fully autoregressive
+    passes: PositiveInt | None = 2
+    #: flows in an equal-weight ensemble (calibration beyond the paper; 1 = a single flow)
+    ensemble: PositiveInt = 1
+
+
+class TrainConfig(_Section):
+    """The grid of models (backbone × training size) and how each is trained."""
+
+    #: training-set sizes: nested prefixes of the train split
     sizes: tuple[PositiveInt, ...] = (1000, 3000, 10000)
+    #: the MLflow experiment of the grid
+    experiment: str = "pidc-grid"
+    flow: FlowParams = FlowParams()
+    epochs: PositiveInt = 60
+    #: maximum epochs for a backbone trained jointly with the flow (costly on a CPU)
+    embedding_epochs: PositiveInt = 8
+    batch_size: PositiveInt = 256
+    lr: Annotated[float, Field(gt=0)] = 1e-3
+    weight_decay: Annotated[float, Field(ge=0)] = 1e-4
+    schedule: Literal["cosine", "plateau", "constant"] = "cosine"
+    #: early stopping: epochs without improvement of the validation loss
+    patience: PositiveInt = 10
+    clip_norm: Annotated[float, Field(gt=0)] | None = 5.0
+    #: λ of balanced NPE (calibration beyond the paper; 0 = plain NPE)
+    balance: Annotated[float, Field(ge=0)] = 0.0
 
 
 class Params(_Section):

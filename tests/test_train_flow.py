@@ -1,0 +1,74 @@
+"""The train stage: a model of the grid trained from cached features, saved, and logged in a real MLflow store."""
+
+from __future__ import annotations
+
+import json
+
+import mlflow
+import numpy as np
+import pytest
+import torch
+
+from components.posterior.store import load_npe
+from tests.conftest import write_params
+
+FAST = {"train.epochs": 3, "train.embedding_epochs": 2, "train.patience": 5,
+        "train.flow": {"transforms": 1, "hidden_features": [16], "bins": 4, "passes": 2, "ensemble": 1}}
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory, prefect_harness):
+    from flows.features import extract_features
+    from flows.generate import generate
+
+    folder = tmp_path_factory.mktemp("train")
+    params = write_params(folder, **FAST)
+    generate(str(params))
+    for backbone in ("cues", "cnn"):
+        extract_features(backbone, str(params))
+    return folder, params
+
+
+def test_train_logs_the_grid_in_mlflow_and_saves_a_loadable_model(project, monkeypatch):
+    from flows.train import train_model
+
+    folder, params = project
+    uri = f"sqlite:///{folder / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    metrics = train_model("cues", 16, str(params))
+    assert np.isfinite(metrics["test_nll"]) and metrics["epochs_run"] == 3
+    assert json.loads((folder / "reports/train/cues-16.json").read_text()) == json.loads((folder / "models/cues-16/metrics.json").read_text())
+
+    model, header = load_npe(folder / "models/cues-16/model.pt")
+    assert header["backbone"] == "cues" and not header["trainable_backbone"]
+    theta = torch.tensor([[50.0, 10.0, 20.0, 30.0, 40.0, 50.0]])
+    x = torch.zeros(1, header["features"])
+    assert torch.isfinite(model.log_prob(theta, x)).all()
+
+    train_model("cnn", 8, str(params))  # a backbone trained jointly with the flow
+    cnn, h = load_npe(folder / "models/cnn-8/model.pt")
+    assert h["trainable_backbone"] and h["input_shape"] is not None
+
+    client = mlflow.MlflowClient(uri)
+    exp = client.get_experiment_by_name("pidc-grid")
+    runs = client.search_runs([exp.experiment_id])
+    children = {r.data.tags["pidc.model"]: r for r in runs if "mlflow.parentRunId" in r.data.tags}
+    parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
+    assert set(children) == {"cues-16", "cnn-8"} and len(parents) == 1, "one parent run for the grid, one child per model"
+    child = children["cues-16"]
+    assert child.data.tags["mlflow.parentRunId"] == parents[0].info.run_id
+    assert child.data.params["backbone"] == "cues" and child.data.params["size"] == "16"
+    assert {"test_nll", "info_gain_nats", "wall_seconds"} <= set(child.data.metrics)
+    assert len(client.get_metric_history(child.info.run_id, "val_loss")) == 3
+    assert {a.path for a in client.list_artifacts(child.info.run_id)} >= {"loss.png", "metrics.json", "model.pt"}
+    assert child.data.tags["data_hash"] and child.data.tags["dvc_stage"] == "train@cues-16"
+
+
+def test_bad_grid_cell_is_named(project):
+    from flows.train import train_model
+
+    _, params = project
+    with pytest.raises(ValueError, match=r"size 5 is not in train.sizes"):
+        train_model("cues", 5, str(params))
+    with pytest.raises(ValueError, match=r"backbone 'resnet50' is not in backbones.names"):
+        train_model("resnet50", 8, str(params))

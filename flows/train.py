@@ -182,6 +182,8 @@ def train_model(backbone_name: str, size: int, params_path: str) -> dict:
                     out / "loss.png")
         for name in ("loss.png", "metrics.json", "model.pt"):
             mlflow.log_artifact(str(out / name))
+    # the grid's parent run is a container: finished whenever none of its models is training
+    client.set_terminated(parent, "FINISHED")
     logger.info("%s: test NLL %.3f nats, information gain %.2f nats, best epoch %d of %d", model_id, test_nll,
                 metrics["info_gain_nats"], history.best_epoch, len(history.records))
     return metrics

@@ -55,6 +55,7 @@ def test_train_logs_the_grid_in_mlflow_and_saves_a_loadable_model(project, monke
     children = {r.data.tags["pidc.model"]: r for r in runs if "mlflow.parentRunId" in r.data.tags}
     parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
     assert set(children) == {"cues-16", "cnn-8"} and len(parents) == 1, "one parent run for the grid, one child per model"
+    assert parents[0].info.status == "FINISHED" and all(r.info.status == "FINISHED" for r in children.values())
     child = children["cues-16"]
     assert child.data.tags["mlflow.parentRunId"] == parents[0].info.run_id
     assert child.data.params["backbone"] == "cues" and child.data.params["size"] == "16"

@@ -143,6 +143,20 @@ class TrainConfig(_Section):
     balance: Annotated[float, Field(ge=0)] = 0.0
 
 
+class EvaluateConfig(_Section):
+    """Task I evaluation of every model of the grid on the test split."""
+
+    #: test images evaluated (the first ones of the test split)
+    images: PositiveInt = 500
+    #: posterior samples per image (HPD credibility, coverage, π); the 99.73 % HDR of the plots needs ≥ 371
+    samples: Annotated[int, Field(ge=400)] = 1000
+    #: images given a posterior predictive check, and re-renders per check (posterior and prior each)
+    ppc_images: PositiveInt = 4
+    ppc_renders: Annotated[int, Field(ge=2)] = 6
+    #: test images shown as histograms and corner plots per model
+    example_images: NonNegativeInt = 1
+
+
 class Params(_Section):
     """The whole ``params.yaml``."""
 
@@ -155,6 +169,7 @@ class Params(_Section):
     contact_sheet: ContactSheetConfig = ContactSheetConfig()
     backbones: BackbonesConfig = BackbonesConfig()
     train: TrainConfig = TrainConfig()
+    evaluate: EvaluateConfig = EvaluateConfig()
 
     @field_validator("prior")
     @classmethod
@@ -170,6 +185,9 @@ class Params(_Section):
                 f"train.sizes has {largest} but data.splits.train is only {self.data.splits['train']}: "
                 "the train split must cover the largest training size"
             )
+        if self.evaluate.images > self.data.splits["test"]:
+            raise ValueError(f"evaluate.images is {self.evaluate.images} but the test split has only "
+                             f"{self.data.splits['test']} images")
         return self
 
     @property

@@ -36,6 +36,8 @@ def test_unknown_key_is_named():
         (lambda d: d["prior"].update(fog_density=[0, 200]), r"'fog_density' = 200 is outside"),
         (lambda d: d["train"].update(sizes=[1000, 50000]), r"train split must cover the largest training size"),
         (lambda d: d["data"]["runner"].update(kind="mpi"), r"data\.runner\.kind"),
+        (lambda d: d["evaluate"].update(samples=100), r"evaluate\.samples: Input should be greater than or equal to 400"),
+        (lambda d: d["evaluate"].update(images=5000), r"evaluate.images is 5000 but the test split has only 2000"),
         (lambda d: d.pop("seed") and d.update(seed=None), r"seed"),
     ],
 )

@@ -73,3 +73,53 @@ def test_bad_grid_cell_is_named(project):
         train_model("cues", 5, str(params))
     with pytest.raises(ValueError, match=r"backbone 'resnet50' is not in backbones.names"):
         train_model("resnet50", 8, str(params))
+
+
+def test_evaluate_writes_task1_metrics_plots_and_mlflow(project, monkeypatch):
+    """Task I on a 2 × 2 grid: every metric per model, the plots, and the metrics in each model's MLflow run."""
+    import yaml
+
+    from flows.evaluate import evaluate
+    from flows.train import train_model
+
+    folder, params = project
+    uri = f"sqlite:///{folder / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    p = yaml.safe_load(params.read_text())
+    p["backbones"]["names"] = ["cues", "cnn"]
+    p["train"]["sizes"] = [8, 16]
+    grid = folder / "grid.yaml"
+    grid.write_text(yaml.safe_dump(p))
+    with pytest.raises(FileNotFoundError, match="no trained model for cues-8, cnn-16"):
+        evaluate(str(grid))
+    for m, s in (("cues", 8), ("cues", 16), ("cnn", 8), ("cnn", 16)):
+        if not (folder / f"models/{m}-{s}/model.pt").exists():
+            train_model(m, s, str(grid))
+
+    metrics = evaluate(str(grid))
+    assert set(metrics) == {"cues-8", "cues-16", "cnn-8", "cnn-16"}
+    for m in metrics.values():
+        assert 0 <= m["calibration_error"] <= 1 and -1 <= m["coverage_auc_gap"] <= 1 and 0 <= m["pi_median"] <= 1
+        assert np.isfinite(m["test_nll"]) and np.isfinite(m["info_gain_nats"]) and m["ppc_score"] <= 1
+    assert json.loads((folder / "reports/task1/metrics.json").read_text()) == metrics
+    plots = folder / "reports/task1/plots"
+    for f in ("coverage.png", "superiority.png", "cues-8/ppc.png", "cues-8/histograms-0.png", "cnn-16/corner-zoom-0.png"):
+        assert (plots / f).stat().st_size > 5000, f
+    rows = json.loads((folder / "reports/task1/coverage.json").read_text())
+    assert len(rows) == 4 * 101 and {"model", "level", "coverage"} == set(rows[0])
+
+    client = mlflow.MlflowClient(uri)
+    exp = client.get_experiment_by_name("pidc-grid")
+    run = client.search_runs([exp.experiment_id], "tags.`pidc.model` = 'cues-8'", order_by=["attributes.start_time DESC"])[0]
+    assert run.data.metrics["task1.calibration_error"] == pytest.approx(metrics["cues-8"]["calibration_error"])
+
+
+def test_evaluate_refuses_a_model_with_another_theta_order(project, tmp_path):
+    from flows.evaluate import check_model_matches_data
+    from components.config import load_params
+
+    folder, params = project
+    _, header = load_npe(folder / "models/cues-16/model.pt")
+    header["box"]["names"] = list(reversed(header["box"]["names"]))
+    with pytest.raises(ValueError, match="θ order"):
+        check_model_matches_data(header, load_params(params), folder / "models/cues-16/model.pt")

@@ -66,6 +66,11 @@ def test_flow_rejects_bad_params_before_work(tmp_path, prefect_harness):
     assert not (tmp_path / "data").exists()
 
 
+FAST_TRAINING = {"train.epochs": 2, "train.embedding_epochs": 1, "train.sizes": [8, 24],
+                 "backbones": {"names": ["cues", "cnn"], "pretrained_dir": None, "batch_size": 256},
+                 "train.flow": {"transforms": 1, "hidden_features": [16], "bins": 4, "passes": 2, "ensemble": 1}}
+
+
 def _run(cmd, cwd, **kw):
     # DVC runs stage commands through the shell: `python` must be this interpreter
     path = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
@@ -74,15 +79,16 @@ def _run(cmd, cwd, **kw):
 
 
 @pytest.mark.slow
-def test_dvc_repro_pipeline_in_a_temp_git_repo(tmp_path):
+def test_dvc_repro_pipeline_in_a_temp_git_repo(tmp_path, prefect_server, monkeypatch):
     """`dvc repro` runs every stage through its Prefect flow; a second run does nothing; a params change reruns."""
     repo = tmp_path / "repo"
     repo.mkdir()
     for name in ("components", "flows"):
         shutil.copytree(PROJECT_ROOT / name, repo / name, ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copy(PROJECT_ROOT / "dvc.yaml", repo / "dvc.yaml")
-    write_params(repo)
+    write_params(repo, **FAST_TRAINING)
     dvc = [sys.executable, "-m", "dvc"]
+    monkeypatch.setenv("PREFECT_API_URL", prefect_server)  # every stage reports to one server (as run.sh does)
     for cmd in (["git", "init", "-q"], dvc + ["init", "-q"], dvc + ["config", "core.analytics", "false"]):
         assert _run(cmd, repo).returncode == 0
 
@@ -91,17 +97,22 @@ def test_dvc_repro_pipeline_in_a_temp_git_repo(tmp_path):
     manifest = json.loads((repo / "data/manifest.json").read_text())
     assert manifest["splits"]["train"]["count"] == 24
     lock = (repo / "dvc.lock").read_text()
-    for stage in ("generate", "features@cues", "features@cnn", "features@tiny"):
+    stages = ["generate", "evaluate", "features@cues", "features@cnn"]
+    stages += [f"train@{b}-{n}" for b in ("cues", "cnn") for n in (8, 24)]
+    for stage in stages:
         assert f"{stage}:" in lock, stage
-    for backbone in ("cues", "cnn", "tiny"):
+    for backbone in ("cues", "cnn"):
         fm = json.loads((repo / f"features/{backbone}/manifest.json").read_text())
         assert fm["dataset_content_hash"] == manifest["content_hash"]
+    task1 = json.loads((repo / "reports/task1/metrics.json").read_text())
+    assert len(task1) == 4 and all(np.isfinite(m["test_nll"]) for m in task1.values())
+    assert (repo / "reports/task1/plots/coverage.png").is_file() and (repo / "mlflow.db").is_file()
 
     r = _run(dvc + ["repro"], repo)
     assert r.returncode == 0 and "Data and pipelines are up to date" in (r.stdout + r.stderr), r.stdout + r.stderr
 
     # a params change reruns the stage, and the data follow the new seed
-    write_params(repo, seed=7)
+    write_params(repo, seed=7, **FAST_TRAINING)
     r = _run(dvc + ["repro", "generate"], repo)
     assert r.returncode == 0, r.stdout + r.stderr
     new = json.loads((repo / "data/manifest.json").read_text())

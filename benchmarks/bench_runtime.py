@@ -1,0 +1,170 @@
+"""Posterior inference speed: the torch-free ONNX runtime vs the torch model (eager), on a trained model.
+
+For each image, features → ``n`` posterior draws θ with their log-densities log q(θ | x):
+``OnnxPosterior.sample_and_log_prob`` (onnxruntime, CPU) vs ``NPE.sample_and_log_prob`` (torch, no autograd).
+Per-image latency (batch of one image, median over images) and throughput (batches of ``--batch`` images),
+with the same thread count on both sides; the two engines alternate call by call, so that a drifting machine
+load affects both alike. The model is exported to a temporary folder first (not timed).
+
+    .venv/bin/python benchmarks/bench_runtime.py --model models/cues-10000/model.pt --threads 1
+
+Inputs are cached features (``--features``, an ``.npy`` of shape ``(N, F)``; default the first test shard of
+``features/<backbone>/`` when present) or random features spread like the training set's. Prints a table and
+one JSON line (``{"benchmark": "runtime", ...}``) with machine information.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import onnxruntime
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from components import seeding  # noqa: E402
+from components.export import EXPORTERS, export_posterior  # noqa: E402
+from components.posterior.store import load_npe  # noqa: E402
+from components.runtime import OnnxPosterior  # noqa: E402
+
+
+def _machine(threads: int) -> dict:
+    cpu = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "cpu": cpu,
+        "cpu_count": os.cpu_count(),
+        "threads": threads,
+        "load_avg_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "onnxruntime": onnxruntime.__version__,
+        "platform": platform.platform(),
+    }
+
+
+def _inputs(path: Path | None, model, count: int, seed: int) -> tuple[np.ndarray, str]:
+    """``count`` feature vectors (float32) and a description of where they come from."""
+    if path is not None and path.is_file():
+        x = np.load(path, allow_pickle=False).astype(np.float32)
+        if x.ndim != 2 or x.shape[1:] != tuple(model.input_shape):
+            raise ValueError(f"{path}: features must have shape (N, {model.input_shape[0]}), got {x.shape}")
+        reps = -(-count // len(x))
+        return np.concatenate([x] * reps)[:count], str(path)
+    rng = seeding.rng(seed, "benchmark", "runtime")
+    mean, std = model.feature_mean.numpy(), model.feature_std.numpy()
+    return (rng.standard_normal((count, *model.input_shape)) * std + mean).astype(np.float32), "random"
+
+
+def _latency(calls: dict[str, Callable[[np.ndarray], object]], x: np.ndarray) -> dict[str, float]:
+    """Median seconds per engine on one image at a time; engines alternate image by image (fair under drifting load)."""
+    times: dict[str, list[float]] = {name: [] for name in calls}
+    for call in calls.values():
+        call(x[:1])  # warm-up
+    for i in range(len(x)):
+        for name, call in calls.items():
+            t = time.perf_counter()
+            call(x[i : i + 1])
+            times[name].append(time.perf_counter() - t)
+    return {name: statistics.median(ts) for name, ts in times.items()}
+
+
+def _throughput(calls: dict[str, Callable[[np.ndarray], object]], x: np.ndarray, batch: int, repeats: int) -> dict[str, float]:
+    """Best images per second per engine over ``repeats`` passes over ``x`` in batches of ``batch`` (engines alternate)."""
+    best = {name: 0.0 for name in calls}
+    for call in calls.values():
+        call(x[:batch])
+    for _ in range(repeats):
+        for name, call in calls.items():
+            t = time.perf_counter()
+            for i in range(0, len(x), batch):
+                call(x[i : i + batch])
+            best[name] = max(best[name], len(x) / (time.perf_counter() - t))
+    return best
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", type=Path, default=ROOT / "models" / "cues-10000" / "model.pt")
+    parser.add_argument("--features", type=Path, default=None, help="an .npy of cached features (N, F)")
+    parser.add_argument("--samples", type=int, default=1000, help="posterior draws per image")
+    parser.add_argument("--images", type=int, default=30, help="images timed one by one (latency)")
+    parser.add_argument("--batch", type=int, default=32, help="images per call (throughput)")
+    parser.add_argument("--batches", type=int, default=4, help="batches per throughput pass")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads = onnxruntime intra-op threads")
+    parser.add_argument("--exporter", choices=EXPORTERS, default="dynamo")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+
+    torch.set_num_threads(args.threads)
+    model, header = load_npe(args.model)
+    if model.embedding is not None and not isinstance(model.embedding, torch.nn.Identity):
+        raise SystemExit(f"{args.model}: this benchmark times feature models (frozen backbones); got a trainable embedding")
+    features = args.features
+    if features is None:
+        features = ROOT / "features" / header["backbone"] / "test" / "shard-00000.npy"
+    x, source = _inputs(features, model, max(args.images, args.batch * args.batches), args.seed)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        t = time.perf_counter()
+        folder = export_posterior(model, Path(tmp) / "posterior", card={"benchmark": True}, exporter=args.exporter)
+        export_s = time.perf_counter() - t
+        runtime = OnnxPosterior.load(folder, intra_op_num_threads=args.threads)
+
+        def run_onnx(batch: np.ndarray) -> object:
+            return runtime.sample_and_log_prob(batch, args.samples, seed=args.seed)
+
+        def run_torch(batch: np.ndarray) -> object:
+            with torch.no_grad():
+                return model.sample_and_log_prob(torch.from_numpy(batch), args.samples, rng=args.seed)
+
+        calls = {"onnxruntime": run_onnx, "torch eager": run_torch}
+        latency = _latency(calls, x[: args.images])
+        throughput = _throughput(calls, x[: args.batch * args.batches], args.batch, args.repeats)
+        rows = {name: {"latency_ms": 1e3 * latency[name], "images_per_s": throughput[name]} for name in calls}
+
+    onnx_row, torch_row = rows["onnxruntime"], rows["torch eager"]
+    speedup_latency = torch_row["latency_ms"] / onnx_row["latency_ms"]
+    speedup_throughput = onnx_row["images_per_s"] / torch_row["images_per_s"]
+    print(f"model {args.model} ({source} features), {args.samples} draws + log q per image, {args.threads} thread(s)")
+    print(f"{'engine':<14}{'latency ms/image':>18}{'images/s (batch ' + str(args.batch) + ')':>22}")
+    for name, row in rows.items():
+        print(f"{name:<14}{row['latency_ms']:>18.2f}{row['images_per_s']:>22.1f}")
+    print(f"onnxruntime speed-up: latency {speedup_latency:.2f}×, throughput {speedup_throughput:.2f}×")
+    record = {
+        "benchmark": "runtime",
+        "model": str(args.model),
+        "features": source,
+        "samples": args.samples,
+        "batch": args.batch,
+        "exporter": args.exporter,
+        "export_seconds": export_s,
+        "results": rows,
+        "speedup_latency": speedup_latency,
+        "speedup_throughput": speedup_throughput,
+        "machine": _machine(args.threads),
+    }
+    print(json.dumps(record))
+    return record
+
+
+if __name__ == "__main__":
+    main()

@@ -22,7 +22,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
 import zipfile
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -31,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from components import seeding, weather
+from components.files import atomic_write_bytes, sha256_file
 
 __all__ = [
     "SPLITS",
@@ -46,7 +46,6 @@ __all__ = [
     "write_manifest",
     "Split",
     "open_split",
-    "atomic_write_bytes",
 ]
 
 SPLITS = ("train", "val", "test")
@@ -61,18 +60,6 @@ class DatasetError(ValueError):
 # --- atomic, deterministic writing ------------------------------------------------------------
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder and an atomic rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
 def _npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
     """An uncompressed ``.npz`` with fixed zip metadata: same arrays → same bytes (np.savez stamps the time)."""
     buf = io.BytesIO()
@@ -84,14 +71,6 @@ def _npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
             np.lib.format.write_array(payload, np.ascontiguousarray(arrays[name]), allow_pickle=False)
             zf.writestr(info, payload.getvalue())
     return buf.getvalue()
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 # --- the plan ---------------------------------------------------------------------------------
@@ -233,7 +212,7 @@ def shard_is_done(spec: ShardSpec, root: str | Path, *, verify_hash: bool = True
         return False
     if receipt.get("bytes") != path.stat().st_size:
         return False
-    return not verify_hash or receipt.get("sha256") == _sha256(path)
+    return not verify_hash or receipt.get("sha256") == sha256_file(path)
 
 
 def render_shard(rows: ShardRows, simulator, root: str | Path) -> dict:
@@ -363,7 +342,7 @@ class Split:
         for path, s in zip(self.shard_files, self._shard_info):
             if not path.is_file():
                 raise DatasetError(f"{path}: shard listed in {root / 'manifest.json'} is missing; re-run the generate stage")
-            if path.stat().st_size != s["bytes"] or (verify and _sha256(path) != s["sha256"]):
+            if path.stat().st_size != s["bytes"] or (verify and sha256_file(path) != s["sha256"]):
                 raise DatasetError(f"{path}: shard does not match the manifest (truncated or changed); re-run the generate stage")
         meta = [self._load_meta(p) for p in self.shard_files]
         self.weather = np.concatenate([m["weather"] for m in meta]) if meta else np.zeros((0, 13))

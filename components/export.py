@@ -23,7 +23,6 @@ metrics, versions). The folder is written atomically: a temporary sibling folder
 from __future__ import annotations
 
 import copy
-import hashlib
 import io
 import json
 import math
@@ -47,6 +46,7 @@ from zuko.transforms import DependentTransform
 from zuko.utils import unpack
 
 from components import weather
+from components.files import sha256_file
 from components.posterior.bijection import Z_MAX
 from components.posterior.mixture import draw_flow
 from components.posterior.model import NPE, Z_SCALE
@@ -180,14 +180,6 @@ def _check_standard_normal_base(flow: nn.Module) -> None:
     loc, scale = base.base_dist.loc, base.base_dist.scale
     if not (bool((loc == 0).all()) and bool((scale == 1).all())):
         raise ValueError("the flow's base distribution is not the standard normal N(0, I): cannot export its sampler")
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _export_graph(
@@ -411,7 +403,7 @@ def _card(model: NPE, user_card: dict[str, Any], files: dict[str, str], tmp: Pat
         "opset": OPSET,
         "exporter": exporter,
         "versions": {"onnx": onnx.__version__, "onnxruntime": onnxruntime.__version__, "torch": torch.__version__},
-        "files": {role: {"name": name, "sha256": _sha256(tmp / name)} for role, name in files.items()},
+        "files": {role: {"name": name, "sha256": sha256_file(tmp / name)} for role, name in files.items()},
     }
 
 

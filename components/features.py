@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from components.dataset import Split, atomic_write_bytes
+from components.dataset import Split
+from components.files import atomic_write_bytes
 
 __all__ = [
     "FeatureStore",

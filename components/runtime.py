@@ -18,7 +18,6 @@ leaves the box.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 from pathlib import Path
@@ -28,6 +27,7 @@ import numpy as np
 import onnxruntime
 
 from components import seeding, weather
+from components.files import sha256_file
 
 __all__ = ["OnnxPosterior", "CARD_FORMAT", "CARD_KIND"]
 
@@ -37,14 +37,6 @@ CARD_FORMAT: int = 1
 CARD_KIND: str = "pidc-onnx-posterior"
 #: Rows per onnxruntime call when sampling or evaluating many points (bounds the graphs' working memory).
 _CHUNK_ROWS: int = 65536
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _read_card(folder: Path) -> dict[str, Any]:
@@ -135,7 +127,7 @@ class OnnxPosterior:
             path = folder / str(entry["name"])
             if not path.is_file():
                 raise FileNotFoundError(f"{path}: the {role!r} graph named by the card is missing")
-            digest = _sha256(path)
+            digest = sha256_file(path)
             if digest != entry["sha256"]:
                 raise ValueError(
                     f"{path}: sha256 {digest[:16]}… differs from the card's {str(entry['sha256'])[:16]}… "

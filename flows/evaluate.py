@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 from components import dataset, diagnostics, features, plots, ppc, seeding, weather
 from components.backbones import get_backbone
 from components.config import PROJECT_ROOT, Params, load_params
-from components.dataset import atomic_write_bytes
+from components.files import atomic_write_bytes
 from components.posterior.store import load_npe
 from components.simulator.base import make_simulator
 from flows.features import features_root

@@ -26,7 +26,7 @@ from prefect import flow, get_run_logger
 from components import dataset, features, seeding
 from components.backbones import get_backbone
 from components.config import PROJECT_ROOT, Params, load_params
-from components.dataset import atomic_write_bytes
+from components.files import atomic_write_bytes
 from components.posterior import NPE, FlowConfig, TrainingConfig, train
 from components.posterior.store import save_npe
 from flows.features import backbone_options, features_root

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from components import weather
-from components.dataset import atomic_write_bytes
+from components.files import atomic_write_bytes
 from components.posterior.model import NPE, FlowConfig
 
 __all__ = ["save_npe", "load_npe", "MODEL_FORMAT"]

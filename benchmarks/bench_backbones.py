@@ -12,10 +12,9 @@ Prints a table and one JSON line (``{"benchmark": "backbones", ...}``) with mach
 
 from __future__ import annotations
 
+
 import argparse
 import json
-import os
-import platform
 import sys
 import tempfile
 import time
@@ -29,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from components import seeding  # noqa: E402
 from components.backbones import EMBEDDED, PRETRAINED, get_backbone  # noqa: E402
+from machine import machine_info  # benchmarks/machine.py (the script's folder is on sys.path)  # noqa: E402
 
 
 def _images(n: int, seed: int) -> np.ndarray:
@@ -85,26 +85,6 @@ def _cnn_train_rate(images: np.ndarray, batch: int, repeats: int, seed: int) -> 
     return _best_rate(epoch, len(x), repeats)
 
 
-def _machine(threads: int) -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {
-        "cpu": cpu,
-        "cpu_count": os.cpu_count(),
-        "torch_threads": threads,
-        "load_avg_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "platform": platform.platform(),
-    }
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=512, help="images per measurement (default 512)")
@@ -152,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:<10} {r['dim']:>5} {r['images_per_s']:>10.0f}  {r['what']}")
     record = {"benchmark": "backbones", "n": args.n, "image_size": [128, 128], "batch_size": args.batch_size,
               "train_batch": args.train_batch, "results": {k: round(v["images_per_s"], 1) for k, v in results.items()},
-              "machine": _machine(args.threads)}
+              "machine": machine_info(torch_threads=args.threads)}
     print(json.dumps(record))
     return 0
 

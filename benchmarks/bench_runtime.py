@@ -15,10 +15,9 @@ one JSON line (``{"benchmark": "runtime", ...}``) with machine information.
 
 from __future__ import annotations
 
+
 import argparse
 import json
-import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -37,27 +36,7 @@ from components import seeding  # noqa: E402
 from components.export import EXPORTERS, export_posterior  # noqa: E402
 from components.posterior.store import load_npe  # noqa: E402
 from components.runtime import OnnxPosterior  # noqa: E402
-
-
-def _machine(threads: int) -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {
-        "cpu": cpu,
-        "cpu_count": os.cpu_count(),
-        "threads": threads,
-        "load_avg_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "onnxruntime": onnxruntime.__version__,
-        "platform": platform.platform(),
-    }
+from machine import machine_info  # benchmarks/machine.py (the script's folder is on sys.path)  # noqa: E402
 
 
 def _inputs(path: Path | None, model, count: int, seed: int) -> tuple[np.ndarray, str]:
@@ -160,7 +139,7 @@ def main(argv: list[str] | None = None) -> dict:
         "results": rows,
         "speedup_latency": speedup_latency,
         "speedup_throughput": speedup_throughput,
-        "machine": _machine(args.threads),
+        "machine": machine_info(threads=args.threads),
     }
     print(json.dumps(record))
     return record

@@ -121,6 +121,19 @@ class FlowParams(_Section):
     ensemble: PositiveInt = 1
 
 
+class VariantConfig(_Section):
+    """A model beside the grid: one backbone and size trained with other calibration settings.
+
+    Variants are keyed by name in ``train.variants``; the model id is ``<backbone>-<size>-<name>``."""
+
+    backbone: str
+    size: PositiveInt
+    #: λ of balanced NPE for this model
+    balance: Annotated[float, Field(ge=0)] = 0.0
+    #: flows in this model's equal-weight ensemble
+    ensemble: PositiveInt = 1
+
+
 class TrainConfig(_Section):
     """The grid of models (backbone × training size) and how each is trained."""
 
@@ -141,6 +154,8 @@ class TrainConfig(_Section):
     clip_norm: Annotated[float, Field(gt=0)] | None = 5.0
     #: λ of balanced NPE (calibration beyond the paper; 0 = plain NPE)
     balance: Annotated[float, Field(ge=0)] = 0.0
+    #: calibrated variants trained and evaluated beside the grid
+    variants: dict[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")], VariantConfig] = Field(default_factory=dict)
 
 
 class EvaluateConfig(_Section):
@@ -185,6 +200,10 @@ class Params(_Section):
                 f"train.sizes has {largest} but data.splits.train is only {self.data.splits['train']}: "
                 "the train split must cover the largest training size"
             )
+        for name, v in self.train.variants.items():
+            if v.backbone not in self.backbones.names or v.size not in self.train.sizes:
+                raise ValueError(f"train.variants.{name} needs a backbone in backbones.names and a size in "
+                                 f"train.sizes, got {v.backbone!r} and {v.size}")
         if self.evaluate.images > self.data.splits["test"]:
             raise ValueError(f"evaluate.images is {self.evaluate.images} but the test split has only "
                              f"{self.data.splits['test']} images")

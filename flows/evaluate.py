@@ -33,7 +33,9 @@ LEVELS = diagnostics.DEFAULT_LEVELS
 
 
 def model_ids(params: Params) -> list[str]:
-    return [f"{b}-{s}" for b in params.backbones.names for s in params.train.sizes]
+    """The grid's models, then the calibrated variants."""
+    grid = [f"{b}-{s}" for b in params.backbones.names for s in params.train.sizes]
+    return grid + [f"{v.backbone}-{v.size}-{name}" for name, v in params.train.variants.items()]
 
 
 def check_model_matches_data(header: dict, params: Params, path: Path) -> None:

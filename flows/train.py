@@ -25,7 +25,7 @@ from prefect import flow, get_run_logger
 
 from components import dataset, features, seeding
 from components.backbones import get_backbone
-from components.config import PROJECT_ROOT, Params, load_params
+from components.config import PROJECT_ROOT, Params, VariantConfig, load_params
 from components.files import atomic_write_bytes
 from components.posterior import NPE, FlowConfig, TrainingConfig, train
 from components.posterior.store import save_npe
@@ -46,21 +46,28 @@ def git_commit(base: Path) -> str:
         return "unknown"
 
 
-def training_settings(params: Params, trainable: bool) -> tuple[FlowConfig, TrainingConfig]:
+def training_settings(params: Params, trainable: bool, variant: VariantConfig | None = None) -> tuple[FlowConfig, TrainingConfig]:
+    """The flow and training settings of a grid model, or of a calibrated variant (its balance and ensemble)."""
     t = params.train
     flow_cfg = FlowConfig(transforms=t.flow.transforms, hidden_features=t.flow.hidden_features, bins=t.flow.bins,
-                          passes=t.flow.passes, ensemble=t.flow.ensemble)
+                          passes=t.flow.passes, ensemble=variant.ensemble if variant else t.flow.ensemble)
     cfg = TrainingConfig(
         epochs=t.embedding_epochs if trainable else t.epochs, batch_size=t.batch_size, lr=t.lr,
         weight_decay=t.weight_decay, schedule=t.schedule, patience=t.patience, clip_norm=t.clip_norm,
-        seed=seeding.derive_seed(params.seed, "train") % 2**31, balance=t.balance,
+        seed=seeding.derive_seed(params.seed, "train") % 2**31, balance=variant.balance if variant else t.balance,
     )
     return flow_cfg, cfg
 
 
+def find_variant(params: Params, name: str) -> VariantConfig:
+    if name not in params.train.variants:
+        raise ValueError(f"no variant {name!r} in train.variants ({', '.join(params.train.variants) or 'none'})")
+    return params.train.variants[name]
+
+
 def grid_key(params: Params, data_hash: str) -> str:
-    """Identifies a grid: the data and every training setting except the list of sizes."""
-    settings = params.train.model_dump(exclude={"sizes"}) | {"seed": params.seed, "data": data_hash,
+    """Identifies a grid: the data and every training setting except the sizes and the variants beside it."""
+    settings = params.train.model_dump(exclude={"sizes", "variants"}) | {"seed": params.seed, "data": data_hash,
                                                              "backbones": list(params.backbones.names)}
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:12]
 
@@ -94,8 +101,9 @@ def mean_nll(model: NPE, x: torch.Tensor, theta: np.ndarray, batch: int = 512) -
 
 
 @flow(name="train", log_prints=True)
-def train_model(backbone_name: str, size: int, params_path: str) -> dict:
-    """Train model ``<backbone>-<size>`` of the grid; write ``models/<id>/`` and log to MLflow."""
+def train_model(backbone_name: str, size: int, params_path: str, variant_name: str | None = None) -> dict:
+    """Train model ``<backbone>-<size>`` of the grid, or the calibrated variant ``<backbone>-<size>-<variant>``;
+    write ``models/<id>/`` and log to MLflow."""
     logger = get_run_logger()
     params_file = Path(params_path)
     params = load_params(params_file)
@@ -104,7 +112,10 @@ def train_model(backbone_name: str, size: int, params_path: str) -> dict:
         raise ValueError(f"backbone {backbone_name!r} is not in backbones.names ({', '.join(params.backbones.names)})")
     if size not in params.train.sizes:
         raise ValueError(f"size {size} is not in train.sizes {list(params.train.sizes)}")
-    model_id = f"{backbone_name}-{size}"
+    variant = find_variant(params, variant_name) if variant_name else None
+    if variant and (variant.backbone, variant.size) != (backbone_name, size):
+        raise ValueError(f"variant {variant_name!r} is defined for {variant.backbone}-{variant.size}, not {backbone_name}-{size}")
+    model_id = f"{backbone_name}-{size}" + (f"-{variant_name}" if variant else "")
     out = base / "models" / model_id
     out.mkdir(parents=True, exist_ok=True)
 
@@ -119,7 +130,7 @@ def train_model(backbone_name: str, size: int, params_path: str) -> dict:
          for s in dataset.SPLITS}
     theta = {s: splits[s].theta[: len(x[s])].astype(np.float32) for s in dataset.SPLITS}
 
-    flow_cfg, cfg = training_settings(params, backbone.trainable)
+    flow_cfg, cfg = training_settings(params, backbone.trainable, variant)
     model_seed = seeding.derive_seed(params.seed, "model", model_id) % 2**31
     if backbone.trainable:
         model = NPE(backbone, backbone.dim, params.box, flow_cfg, input_shape=tuple(x["train"].shape[1:]), seed=model_seed)
@@ -146,7 +157,8 @@ def train_model(backbone_name: str, size: int, params_path: str) -> dict:
     t0 = time.perf_counter()
     with mlflow.start_run(run_id=run_id, experiment_id=experiment_id):
         mlflow.set_tags({"pidc.model": model_id, "pidc.grid": key, "pidc.backbone": backbone_name, "pidc.size": str(size),
-                         "git_commit": git_commit(base), "data_hash": data_hash, "dvc_stage": f"train@{model_id}"})
+                         "git_commit": git_commit(base), "data_hash": data_hash,
+                         "dvc_stage": f"variant@{variant_name}" if variant else f"train@{model_id}"})
         mlflow.log_params({"backbone": backbone_name, "size": size, "trainable_backbone": backbone.trainable,
                            "features": backbone.dim, "model_seed": model_seed,
                            **{f"flow.{k}": v for k, v in asdict(flow_cfg).items()},
@@ -193,10 +205,11 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description="Train one NPE of the backbone × size grid (the train stage).")
     parser.add_argument("--backbone", required=True)
     parser.add_argument("--size", type=int, required=True)
+    parser.add_argument("--variant", help="a name from train.variants (a calibrated model beside the grid)")
     parser.add_argument("--params", type=Path, default=PROJECT_ROOT / "params.yaml")
     args = parser.parse_args(argv)
     torch.set_num_threads(max(1, os.cpu_count() or 1))
-    train_model(args.backbone, args.size, str(args.params))
+    train_model(args.backbone, args.size, str(args.params), args.variant)
 
 
 if __name__ == "__main__":

@@ -35,6 +35,7 @@ def micro_params(**overrides) -> dict:
     p["data"]["runner"].update(kind="threads", workers=2)
     p["contact_sheet"].update(steps=3, scenes=1)
     p["train"]["sizes"] = [8, 16, 24]
+    p["train"]["variants"] = {"balanced": {"backbone": "cues", "size": 16, "balance": 10.0}}
     p["evaluate"].update(images=8, samples=400, ppc_images=1, ppc_renders=2, example_images=1)
     for key, value in overrides.items():
         section, _, name = key.partition(".")

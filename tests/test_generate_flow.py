@@ -67,6 +67,7 @@ def test_flow_rejects_bad_params_before_work(tmp_path, prefect_harness):
 
 
 FAST_TRAINING = {"train.epochs": 2, "train.embedding_epochs": 1, "train.sizes": [8, 24],
+                 "train.variants": {"ensemble": {"backbone": "cues", "size": 24, "ensemble": 2}},
                  "backbones": {"names": ["cues", "cnn"], "pretrained_dir": None, "batch_size": 256},
                  "train.flow": {"transforms": 1, "hidden_features": [16], "bins": 4, "passes": 2, "ensemble": 1}}
 
@@ -97,7 +98,7 @@ def test_dvc_repro_pipeline_in_a_temp_git_repo(tmp_path, prefect_server, monkeyp
     manifest = json.loads((repo / "data/manifest.json").read_text())
     assert manifest["splits"]["train"]["count"] == 24
     lock = (repo / "dvc.lock").read_text()
-    stages = ["generate", "evaluate", "features@cues", "features@cnn"]
+    stages = ["generate", "evaluate", "features@cues", "features@cnn", "variant@ensemble"]
     stages += [f"train@{b}-{n}" for b in ("cues", "cnn") for n in (8, 24)]
     for stage in stages:
         assert f"{stage}:" in lock, stage
@@ -105,7 +106,7 @@ def test_dvc_repro_pipeline_in_a_temp_git_repo(tmp_path, prefect_server, monkeyp
         fm = json.loads((repo / f"features/{backbone}/manifest.json").read_text())
         assert fm["dataset_content_hash"] == manifest["content_hash"]
     task1 = json.loads((repo / "reports/task1/metrics.json").read_text())
-    assert len(task1) == 4 and all(np.isfinite(m["test_nll"]) for m in task1.values())
+    assert set(task1) == {"cues-8", "cues-24", "cnn-8", "cnn-24", "cues-24-ensemble"} and all(np.isfinite(m["test_nll"]) for m in task1.values())
     assert (repo / "reports/task1/plots/coverage.png").is_file() and (repo / "mlflow.db").is_file()
 
     r = _run(dvc + ["repro"], repo)

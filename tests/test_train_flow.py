@@ -54,7 +54,7 @@ def test_train_logs_the_grid_in_mlflow_and_saves_a_loadable_model(project, monke
     runs = client.search_runs([exp.experiment_id])
     children = {r.data.tags["pidc.model"]: r for r in runs if "mlflow.parentRunId" in r.data.tags}
     parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
-    assert set(children) == {"cues-16", "cnn-8"} and len(parents) == 1, "one parent run for the grid, one child per model"
+    assert {"cues-16", "cnn-8"} <= set(children) and len(parents) == 1, "one parent run for the grid, one child per model"
     assert parents[0].info.status == "FINISHED" and all(r.info.status == "FINISHED" for r in children.values())
     child = children["cues-16"]
     assert child.data.tags["mlflow.parentRunId"] == parents[0].info.run_id
@@ -95,9 +95,16 @@ def test_evaluate_writes_task1_metrics_plots_and_mlflow(project, monkeypatch):
     for m, s in (("cues", 8), ("cues", 16), ("cnn", 8), ("cnn", 16)):
         if not (folder / f"models/{m}-{s}/model.pt").exists():
             train_model(m, s, str(grid))
+    with pytest.raises(FileNotFoundError, match="no trained model for cues-16-balanced"):
+        evaluate(str(grid))
+    with pytest.raises(ValueError, match="variant 'balanced' is defined for cues-16, not cues-8"):
+        train_model("cues", 8, str(grid), "balanced")
+    variant = train_model("cues", 16, str(grid), "balanced")  # the calibrated variant beside the grid
+    assert (folder / "models/cues-16-balanced/model.pt").is_file()
 
     metrics = evaluate(str(grid))
-    assert set(metrics) == {"cues-8", "cues-16", "cnn-8", "cnn-16"}
+    assert set(metrics) == {"cues-8", "cues-16", "cnn-8", "cnn-16", "cues-16-balanced"}
+    assert np.isfinite(variant["test_nll"])
     for m in metrics.values():
         assert 0 <= m["calibration_error"] <= 1 and -1 <= m["coverage_auc_gap"] <= 1 and 0 <= m["pi_median"] <= 1
         assert np.isfinite(m["test_nll"]) and np.isfinite(m["info_gain_nats"]) and m["ppc_score"] <= 1
@@ -106,7 +113,7 @@ def test_evaluate_writes_task1_metrics_plots_and_mlflow(project, monkeypatch):
     for f in ("coverage.png", "superiority.png", "cues-8/ppc.png", "cues-8/histograms-0.png", "cnn-16/corner-zoom-0.png"):
         assert (plots / f).stat().st_size > 5000, f
     rows = json.loads((folder / "reports/task1/coverage.json").read_text())
-    assert len(rows) == 4 * 101 and {"model", "level", "coverage"} == set(rows[0])
+    assert len(rows) == 5 * 101 and {"model", "level", "coverage"} == set(rows[0])
 
     client = mlflow.MlflowClient(uri)
     exp = client.get_experiment_by_name("pidc-grid")

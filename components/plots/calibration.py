@@ -22,6 +22,10 @@ _LINESTYLES = ("-", "--", ":", "-.", (0, (5, 1, 1, 1, 1, 1)))
 _MARKERS = ("o", "s", "^", "D", "v", "P")
 
 
+#: colours of the models beside a grid (variants), distinct from the backbones' C0…C9
+_EXTRA_COLOURS = ("black", "dimgray", "darkred", "darkgoldenrod", "indigo", "teal")
+
+
 def _size_value(size: str) -> float | None:
     m = _SIZE.match(size)
     if not m:
@@ -33,19 +37,25 @@ def model_styles(names: Sequence[str]) -> dict[str, dict[str, object]]:
     """Matplotlib line styles (``color``, ``linestyle``, ``marker``) for each model name.
 
     Names ``"<backbone>-<size>"`` with a numeric size (``500``, ``50k``, ``1M``): a colour per backbone (in
-    order of appearance), a line style per size (smallest first). Other names: distinct colours (tab20) with
-    cycled line styles. A marker is added for every style so that curves stay distinguishable in grey.
+    order of appearance), a line style per size (smallest first); up to six other names beside such a grid
+    (e.g. calibrated variants) get heavy solid lines in colours of their own. Otherwise: distinct colours
+    (tab20) with cycled line styles. A marker is added for every style so that curves stay distinguishable in grey.
     """
     names = list(names)
-    parts = [n.rsplit("-", 1) for n in names]
-    parsed = all(len(p) == 2 and _size_value(p[1]) is not None for p in parts)
-    backbones = list(dict.fromkeys(p[0] for p in parts)) if parsed else []
-    sizes = sorted({p[1] for p in parts}, key=_size_value) if parsed else []
+    grid = [n for n in names if len(p := n.rsplit("-", 1)) == 2 and _size_value(p[1]) is not None]
+    parts = [n.rsplit("-", 1) for n in grid]
+    backbones = list(dict.fromkeys(p[0] for p in parts))
+    sizes = sorted({p[1] for p in parts}, key=_size_value)
+    others = [n for n in names if n not in grid]
     styles: dict[str, dict[str, object]] = {}
-    if parsed and len(backbones) <= 10 and len(sizes) <= len(_LINESTYLES):
-        for name, (backbone, size) in zip(names, parts):
+    if grid and len(backbones) <= 10 and len(sizes) <= len(_LINESTYLES) and len(others) <= len(_EXTRA_COLOURS):
+        for name, (backbone, size) in zip(grid, parts):
             b, s = backbones.index(backbone), sizes.index(size)
             styles[name] = {"color": f"C{b}", "linestyle": _LINESTYLES[s], "marker": _MARKERS[s % len(_MARKERS)]}
+        # models beside the grid (e.g. calibrated variants "<backbone>-<size>-<name>"): heavy lines of their own
+        for k, name in enumerate(others):
+            styles[name] = {"color": _EXTRA_COLOURS[k], "linestyle": "-", "marker": _MARKERS[k % len(_MARKERS)],
+                            "linewidth": 2.6}
         return styles
     from matplotlib import colormaps
 
@@ -97,7 +107,7 @@ def coverage_plot(
         st = styles[name]
         order = np.argsort(lv)
         ax.plot(lv[order], cov[order], color=st["color"], linestyle=st["linestyle"], marker=st["marker"],
-                markevery=max(1, lv.size // 8), markersize=4.5, linewidth=1.6, label=name)
+                markevery=max(1, lv.size // 8), markersize=4.5, linewidth=st.get("linewidth", 1.6), label=name)
     ax.set_xlim(0, 1)
     ax.set_ylim(0, 1)
     ax.set_aspect("equal")

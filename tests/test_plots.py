@@ -299,3 +299,12 @@ _LP = -np.arange(500, dtype=float) / 100
 def test_bad_inputs_give_clear_errors(call, error, message):
     with pytest.raises(error, match=message):
         call()
+
+
+def test_model_styles_keep_the_grid_scheme_beside_variants():
+    grid = ["cues-1000", "cues-10000", "cnn-1000", "cnn-10000"]
+    alone = plots.model_styles(grid)
+    styles = plots.model_styles(grid + ["cues-10000-balanced", "cues-10000-ensemble"])
+    assert all(styles[n] == alone[n] for n in grid)
+    a, b = styles["cues-10000-balanced"], styles["cues-10000-ensemble"]
+    assert a["color"] != b["color"] and a["linewidth"] > 2 and a["color"] not in {s["color"] for s in alone.values()}

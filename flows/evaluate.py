@@ -27,7 +27,7 @@ from components.posterior.store import load_npe
 from components.simulator.base import make_simulator
 from flows.features import features_root
 from flows.generate import data_root
-from flows.train import _inputs, tracking_uri
+from flows.train import model_inputs, tracking_uri
 
 LEVELS = diagnostics.DEFAULT_LEVELS
 
@@ -75,7 +75,7 @@ def evaluate_model(model_id: str, params_path: str, out: str) -> dict:
     test = dataset.open_split(data_root(params, params_file), "test")
     n = min(ev.images, len(test))
     backbone = get_backbone(header["backbone"], **header["backbone_options"])
-    x = _inputs(backbone, features.open_features(features_root(params_file), header["backbone"], test, stop=n))
+    x = model_inputs(backbone, features.open_features(features_root(params_file), header["backbone"], test, stop=n))
     truth = test.theta[:n]
     samples, lp, lp_truth = posterior_draws(model, x, truth, ev.samples, seeding.derive_seed(params.seed, model_id))
 

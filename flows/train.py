@@ -85,7 +85,7 @@ def _find_or_create_run(client: mlflow.MlflowClient, experiment_id: str, tags: d
     return client.create_run(experiment_id, tags=all_tags, run_name=name).info.run_id
 
 
-def _inputs(backbone, cached: np.ndarray) -> torch.Tensor:
+def model_inputs(backbone, cached: np.ndarray) -> torch.Tensor:
     """The model input: cached features, or a trainable backbone's preprocessed cached input."""
     return backbone.preprocess(cached) if backbone.trainable else torch.from_numpy(np.ascontiguousarray(cached))
 
@@ -126,7 +126,7 @@ def train_model(backbone_name: str, size: int, params_path: str, variant_name: s
     options = backbone_options(backbone_name, params, params_file)
     backbone = get_backbone(backbone_name, **options)
     froot = features_root(params_file)
-    x = {s: _inputs(backbone, features.open_features(froot, backbone_name, splits[s], stop=size if s == "train" else None))
+    x = {s: model_inputs(backbone, features.open_features(froot, backbone_name, splits[s], stop=size if s == "train" else None))
          for s in dataset.SPLITS}
     theta = {s: splits[s].theta[: len(x[s])].astype(np.float32) for s in dataset.SPLITS}
 

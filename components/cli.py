@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from components import weather
+from components.cli_common import CLIError
 
 #: Named starting weathers for ``pidc render --preset`` (pidc's own, in the spirit of CARLA's presets).
 PRESETS: dict[str, dict[str, float]] = {
@@ -24,10 +26,6 @@ PRESETS: dict[str, dict[str, float]] = {
     "clear_night": dict(cloudiness=10, fog_density=3, precipitation=0, sun_altitude_angle=-40, wind_intensity=10,
                         precipitation_deposits=30, sun_azimuth_angle=0),
 }
-
-
-class CLIError(Exception):
-    """A user error: printed as one line, exit status 2."""
 
 
 def _parse_assignments(items: Sequence[str]) -> dict[str, float]:
@@ -91,6 +89,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, default=256)
     p.add_argument("-o", "--out", type=Path, default=Path("render.png"), help="PNG path (default: render.png)")
     p.set_defaults(func=_cmd_render)
+
+    from components.cli_registry import add_registry_commands
+
+    add_registry_commands(sub)
     return parser
 
 
@@ -101,6 +103,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CLIError as e:
         print(f"pidc {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # e.g. `pidc characterize … | head`: the reader left; not an error of ours
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's recipe: no flush error at exit
+        return 0
 
 
 if __name__ == "__main__":

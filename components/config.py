@@ -13,6 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Literal
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -172,6 +173,119 @@ class EvaluateConfig(_Section):
     example_images: NonNegativeInt = 1
 
 
+class ExportConfig(_Section):
+    """ONNX export of every model into ``registry/`` and its registration in the MLflow Model Registry."""
+
+    #: torch → ONNX exporter: ``torchscript`` (~5 s a model here; deprecated by torch but checked against torch at
+    #: export time) or ``dynamo`` (torch.export, torch's maintained route; 50–130 s a model here)
+    exporter: Literal["torchscript", "dynamo"] = "torchscript"
+    #: registered model name = prefix + model id (e.g. ``pidc-cues-1000``)
+    registered_prefix: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]*$")] = "pidc-"
+    #: the Task I metric (lower is better) whose best model gets the alias ``champion`` after the evaluation
+    champion_metric: Literal["calibration_error", "test_nll"] = "calibration_error"
+
+
+class GaussianMode(_Section):
+    """One component of Task II's Gaussian mixture over (fog_density, precipitation), physical units."""
+
+    weight: Annotated[float, Field(gt=0)]
+    mean: tuple[float, float]
+    std: tuple[Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]]
+
+
+class Task2Config(_Section):
+    """Task II: a bag of rendered images whose weather follows a known distribution → its characterization."""
+
+    #: the registry model characterizing the bag: a model id, or ``champion`` (best calibrated, after evaluate)
+    model: str = "champion"
+    #: images in the bag (all equally weighted), rendered in fresh scenes
+    images: PositiveInt = 1000
+    images_per_scene: PositiveInt = 8
+    #: the fixed predicted parameters (every one but fog_density and precipitation), physical units
+    fixed: dict[str, float] = Field(default_factory=lambda: {"cloudiness": 30.0, "sun_altitude_angle": 45.0,
+                                                             "wind_intensity": 20.0, "precipitation_deposits": 30.0})
+    #: the Gaussian mixture over (fog_density, precipitation), truncated to the prior box
+    modes: tuple[GaussianMode, ...] = (
+        GaussianMode(weight=0.4, mean=(15.0, 20.0), std=(6.0, 8.0)),
+        GaussianMode(weight=0.35, mean=(60.0, 75.0), std=(8.0, 8.0)),
+        GaussianMode(weight=0.25, mean=(35.0, 50.0), std=(5.0, 6.0)),
+    )
+    #: draws from the estimate and from the true distribution (metrics and plots)
+    samples: Annotated[int, Field(ge=100)] = 20000
+    #: the estimate's highest-density region whose share of the true mass is reported
+    hdr_level: Annotated[float, Field(gt=0, lt=1)] = 0.95
+
+    @field_validator("fixed")
+    @classmethod
+    def _fixed_params(cls, v: dict[str, float]) -> dict[str, float]:
+        expected = set(weather.PREDICTED) - {"fog_density", "precipitation"}
+        if set(v) != expected:
+            raise ValueError(f"must give exactly {sorted(expected)} (fog_density and precipitation follow the "
+                             f"mixture), got {sorted(v)}")
+        return v
+
+
+class BagConfig(_Section):
+    """A Task III bag: the test images whose weather lies in a sub-box of the prior (uniform on it)."""
+
+    #: the sub-box, per predicted parameter (omitted ones span the prior), physical units
+    box: dict[str, tuple[float, float]]
+    #: at most this many images (the first ones of the test split inside the sub-box)
+    max_images: PositiveInt
+
+
+class Task3Config(_Section):
+    """Task III: targets mixing three source bags and an out-of-ODD bag b0 at noise level η (the paper's sweep)."""
+
+    #: the registry model characterizing every bag: a model id, or ``champion``
+    model: str = "champion"
+    #: b0 (out of the ODD; disjoint from the others), then the sources b1, b2, b3
+    bags: dict[Annotated[str, Field(pattern=r"^b[0-9]+$")], BagConfig] = Field(default_factory=dict)
+    #: the true mixture weights λ of the sources b1, b2, … (on the simplex)
+    weights: tuple[Annotated[float, Field(ge=0)], ...] = (0.2, 0.3, 0.5)
+    #: noise levels η: the share of b0 in the target
+    etas: tuple[Annotated[float, Field(ge=0, le=1)], ...] = tuple(round(0.1 * i, 1) for i in range(11))
+    repetitions: PositiveInt = 30
+    #: n_W, points drawn from the target's characterization where the densities are compared
+    n_points: PositiveInt = 16
+    #: the ODD decision's false-alarm rate α, and the in-ODD (η = 0) targets calibrating its threshold
+    false_alarm_rate: Annotated[float, Field(gt=0, lt=1)] = 0.05
+    calibration_targets: PositiveInt = 100
+    #: beyond the paper: also run fresh targets (their in-ODD part from other test images of the sources' sub-boxes);
+    #: the ODD decision is then calibrated and judged on them (see components.sweep)
+    fresh_targets: bool = True
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Task3Config:
+        names = sorted(self.bags, key=lambda n: int(n[1:]))
+        if names != [f"b{i}" for i in range(len(names))] or len(names) < 3:
+            raise ValueError(f"bags must be b0 (out of the ODD), b1, b2, … with at least two sources, got {names}")
+        if len(self.weights) != len(names) - 1:
+            raise ValueError(f"weights has {len(self.weights)} entries for {len(names) - 1} sources (b1…)")
+        if abs(sum(self.weights) - 1.0) > 1e-9:
+            raise ValueError(f"weights must sum to 1, got {sum(self.weights)}")
+        if 0.0 not in self.etas:
+            raise ValueError("etas must contain 0 (in-ODD targets: the reference of the ROC curves)")
+        if self.n_points < len(names) - 1:
+            raise ValueError(f"n_points = {self.n_points} cannot determine {len(names) - 1} weights")
+        boxes = {}
+        for name, bag in self.bags.items():
+            try:
+                boxes[name] = weather.Box.from_mapping(bag.box)
+            except ValueError as e:
+                raise ValueError(f"bags.{name}.box: {e}") from None
+        for name in names[1:]:  # b0 must be out of the ODD: disjoint from every source's box
+            a, b = boxes["b0"], boxes[name]
+            if not np.any((a.high < b.low) | (b.high < a.low)):
+                raise ValueError(f"bags.b0.box overlaps bags.{name}.box: b0 must be disjoint from every source")
+        return self
+
+    @property
+    def sources(self) -> list[str]:
+        """The source bags b1, b2, … in order."""
+        return sorted((n for n in self.bags if n != "b0"), key=lambda n: int(n[1:]))
+
+
 class Params(_Section):
     """The whole ``params.yaml``."""
 
@@ -185,6 +299,16 @@ class Params(_Section):
     backbones: BackbonesConfig = BackbonesConfig()
     train: TrainConfig = TrainConfig()
     evaluate: EvaluateConfig = EvaluateConfig()
+    export: ExportConfig = ExportConfig()
+    task2: Task2Config = Task2Config()
+    task3: Task3Config = Task3Config(bags={
+        "b0": BagConfig(box={"sun_altitude_angle": (-90.0, -15.0), "fog_density": (50.0, 100.0)}, max_images=176),
+        "b1": BagConfig(box={"sun_altitude_angle": (15.0, 90.0), "precipitation": (0.0, 30.0),
+                             "cloudiness": (0.0, 40.0)}, max_images=27),
+        "b2": BagConfig(box={"sun_altitude_angle": (15.0, 90.0), "precipitation": (60.0, 100.0)}, max_images=21),
+        "b3": BagConfig(box={"sun_altitude_angle": (0.0, 90.0), "fog_density": (0.0, 40.0),
+                             "cloudiness": (60.0, 100.0)}, max_images=26),
+    })
 
     @field_validator("prior")
     @classmethod

@@ -26,6 +26,8 @@ __all__ = [
     "expected_coverage",
     "calibration_error",
     "coverage_error",
+    "energy_distance",
+    "hdr_mass",
     "DEFAULT_LEVELS",
 ]
 
@@ -129,3 +131,52 @@ def coverage_error(credibility: object, levels: object | None = None) -> float:
     """
     _, dev = _deviation(credibility, levels)
     return float(dev[np.argmax(np.abs(dev))])
+
+
+def _mean_pairwise_distance(a: np.ndarray, b: np.ndarray, chunk: int = 2048) -> float:
+    total = 0.0
+    for s in range(0, a.shape[0], chunk):
+        diff = a[s : s + chunk, None, :] - b[None, :, :]
+        total += float(np.sqrt((diff**2).sum(axis=-1)).sum())
+    return total / (a.shape[0] * b.shape[0])
+
+
+def energy_distance(a: object, b: object, scale: object | None = None) -> float:
+    """The energy distance between two samples ``a (n, d)`` and ``b (m, d)`` (Székely & Rizzo):
+
+        D(P, Q) = sqrt(2 E‖X − Y‖ − E‖X − X′‖ − E‖Y − Y′‖),   X, X′ ~ P,  Y, Y′ ~ Q,
+
+    with the V-statistic estimates of the expectations (all pairs). D = 0 iff P = Q; for d = 1 it equals
+    ``scipy.stats.energy_distance``. ``scale`` ``(d,)`` divides each coordinate first (e.g. the prior's width, so that
+    parameters in %, degrees… weigh alike); D is then in those units. O(n·m) time.
+    """
+    x, y = (np.asarray(v, dtype=np.float64) for v in (a, b))
+    for name, v in (("a", x), ("b", y)):
+        if v.ndim != 2 or v.shape[0] < 1 or not np.all(np.isfinite(v)):
+            raise ValueError(f"{name} must be finite samples of shape (n, d), got shape {v.shape}")
+    if x.shape[1] != y.shape[1]:
+        raise ValueError(f"a and b must have the same dimension, got {x.shape[1]} and {y.shape[1]}")
+    if scale is not None:
+        s = np.asarray(scale, dtype=np.float64)
+        if s.shape != (x.shape[1],) or not np.all(s > 0):
+            raise ValueError(f"scale must be positive of shape ({x.shape[1]},), got {s.shape}")
+        x, y = x / s, y / s
+    d2 = 2 * _mean_pairwise_distance(x, y) - _mean_pairwise_distance(x, x) - _mean_pairwise_distance(y, y)
+    return float(np.sqrt(max(d2, 0.0)))
+
+
+def hdr_mass(log_prob_estimate: object, log_prob_points: object, level: float) -> float:
+    """The share of ``points`` inside the estimate's highest-density region at credible ``level``.
+
+    The HDR {θ : p̂(θ) ≥ t} holds ``level`` of p̂'s mass; t is estimated as the (1 − level)-quantile of p̂'s
+    log-density at draws from p̂ (``log_prob_estimate (S,)``). ``log_prob_points (n,)``: p̂'s log-density at draws of
+    another distribution P (Task II: the true weather distribution); the result estimates P(p̂(W) ≥ t).
+    Equals ``level`` in expectation when P = p̂.
+    """
+    est, pts = (np.asarray(v, dtype=np.float64).ravel() for v in (log_prob_estimate, log_prob_points))
+    if not 0.0 < float(level) < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level!r}")
+    if est.size == 0 or pts.size == 0 or np.any(np.isnan(est)) or np.any(np.isnan(pts)):
+        raise ValueError("log-densities must be non-empty and free of NaN")
+    threshold = np.quantile(est, 1.0 - float(level))
+    return float(np.mean(pts >= threshold))

@@ -13,9 +13,12 @@ The exported folder holds three kinds of graph, all float32 with a dynamic batch
     ``(context (B, features), eps (B, n, d)) → (z (B, n, d), log_qz (B, n))``: member k's inverse pass
     ``z = fₖ⁻¹(ε | c)`` for n draws per input from standard-normal base noise ε, and
     ``log qₖ(z | c) = log N(ε; 0, I) + log|det ∂fₖ(z)/∂z|`` (n is dynamic too; see :class:`_SampleGraph`).
+``density.onnx``
+    ``(x (B, *input_shape), θ (B, d)) → log_prob (B,)``: the whole log-density in physical units in one graph, for
+    consumers that run one ONNX model (the MLflow ONNX flavor); the runtime does not use it.
 
-The bijection to physical units (θ = scaled sigmoid of z, :mod:`components.weather`) is not in the graphs: the
-runtime applies it in float64 numpy. ``card.json`` describes everything the runtime needs (θ names, units, box,
+Apart from ``density.onnx``, the bijection to physical units (θ = scaled sigmoid of z, :mod:`components.weather`) is
+not in the graphs: the runtime applies it in float64 numpy. ``card.json`` describes everything the runtime needs (θ names, units, box,
 bijection, input spec, the graphs' file names and sha256) merged with the caller's card (backbone, training size,
 metrics, versions). The folder is written atomically: a temporary sibling folder, then a rename.
 """
@@ -86,6 +89,35 @@ class _LogProbGraph(nn.Module):
 
     def forward(self, context: Tensor, z: Tensor) -> Tensor:
         return torch.stack([flow(context).log_prob(z) for flow in self.flows], dim=-1)
+
+
+class _DensityGraph(nn.Module):
+    """``(x (B, *input_shape), θ (B, d)) → log q(θ | x) (B,)`` float64 in physical units: the whole posterior density.
+
+    The same function as :meth:`NPE.log_prob` in one graph (context, every member, the equal-weight mixture, the
+    scaled-logit Jacobian in float64, ``-inf`` outside the closed box), for consumers that run a single ONNX model,
+    e.g. the MLflow ONNX flavor. The runtime itself composes the smaller graphs.
+    """
+
+    def __init__(self, model: NPE) -> None:
+        super().__init__()
+        self.context = _ContextGraph(model)
+        self.flows = model.flows
+        self.bijection = model.bijection
+
+    def forward(self, x: Tensor, theta: Tensor) -> Tensor:
+        c = self.context(x)
+        t = theta.to(torch.float64)
+        z64 = self.bijection.to_unbounded(t)
+        z = z64.to(c.dtype)
+        log_qz = torch.stack([flow(c).log_prob(z) for flow in self.flows], dim=0).to(torch.float64)
+        # log |∂θ/∂z| = Σ [log(high − low) + log σ(z) + log σ(−z)], with log σ(z) + log σ(−z) = −|z| − 2 log(1 + e^−|z|)
+        # (written out: the exporters have no logaddexp)
+        a = z64.abs()
+        width = (self.bijection.high - self.bijection.low).to(torch.float64)
+        ladj = (torch.log(width) - a - 2.0 * torch.log1p(torch.exp(-a))).sum(dim=-1)
+        log_q = torch.logsumexp(log_qz, dim=0) - math.log(len(self.flows)) - ladj
+        return torch.where(self.bijection.contains(t), log_q, torch.full_like(log_q, -math.inf))
 
 
 class _SampleGraph(nn.Module):
@@ -326,6 +358,13 @@ def _write_graphs(model: NPE, tmp: Path, exporter: str) -> dict[str, str]:
             (files["context"], {"x": x.numpy()}, [c]),
             (files["log_prob"], {"context": c.numpy(), "z": z.numpy()}, [lp_module(c, z)]),
         ]
+        files["density"] = "density.onnx"
+        theta = model.box.low + torch.rand((b, model.dim), generator=gen, dtype=torch.float64).numpy() * model.box.width
+        theta_t = torch.from_numpy(theta).float()
+        d_module = _DensityGraph(model)
+        _export_graph(d_module, (x, theta_t), tmp / files["density"], ["x", "theta"], ["log_prob"], exporter,
+                      {"x": ("batch",), "theta": ("batch",), "log_prob": ("batch",)})
+        checks.append((files["density"], {"x": x.numpy(), "theta": theta_t.numpy()}, [model.log_prob(theta_t, x)]))
         for k, flow in enumerate(model.flows):
             name = f"sample_{k}.onnx"
             files[f"sample_{k}"] = name
@@ -394,6 +433,10 @@ def _card(model: NPE, user_card: dict[str, Any], files: dict[str, str], tmp: Pat
             "log_prob": {
                 "inputs": {"context": ["batch", model.features], "z": ["batch", model.dim]},
                 "outputs": {"log_qz": ["batch", len(model.flows)]},
+            },
+            "density": {
+                "inputs": {"x": ["batch", *model.input_shape], "theta": ["batch", model.dim]},
+                "outputs": {"log_prob": ["batch"]},
             },
             "sample": {
                 "inputs": {"context": ["batch", model.features], "eps": ["batch", "draws", model.dim]},

@@ -188,3 +188,13 @@ def open_features(root: str | Path, backbone: str, split: Split, *, stop: int | 
         have += len(parts[-1])
     return np.concatenate(parts) if parts else np.zeros((0, *manifest["splits"][split.name]["shape"]), np.float32)
 
+
+
+def posterior_inputs(backbone, images: np.ndarray, batch_size: int = 256) -> np.ndarray:
+    """The posterior's input ``x`` for uint8 images ``(n, H, W, 3)``: frozen features ``(n, dim)``, or a trainable
+    backbone's preprocessed tensor ``(n, C, h, w)``; float32 numpy (what :class:`components.runtime.OnnxPosterior`
+    takes)."""
+    cached = backbone_output(backbone, images, batch_size)
+    if backbone.trainable:
+        return backbone.preprocess(cached).detach().numpy().astype(np.float32, copy=False)
+    return np.ascontiguousarray(cached, dtype=np.float32)

@@ -15,7 +15,8 @@ reported in original units, δ = s² · δ_scaled.
 
 The Operational Design Domain is the convex hull of the sources; a large δ(λ̂) says the target is outside it.
 :class:`OddDetector` turns a gap statistic (δ, or the scale-free :attr:`Relation.relative_gap`) into a decision with
-a threshold calibrated on in-ODD gaps for a chosen false-alarm rate.
+a threshold calibrated on in-ODD gaps for a chosen false-alarm rate; :func:`calibrate_on_sources` builds those gaps
+from the sources themselves (targets of random composition held out of the source bags) for the relative gap.
 """
 
 from __future__ import annotations
@@ -23,12 +24,15 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import cvxpy as cp
 import numpy as np
 
 from components.seeding import derive_seed, rng
+
+if TYPE_CHECKING:
+    from components.domain import Domain
 
 __all__ = [
     "Characterization",
@@ -40,6 +44,7 @@ __all__ = [
     "chance_baseline_gap",
     "simplex_distance",
     "OddDetector",
+    "calibrate_on_sources",
 ]
 
 SOLVER = "CLARABEL"
@@ -345,3 +350,119 @@ class OddDetector:
         if not np.all(np.isfinite(g)) or np.any(g < 0):
             raise ValueError("gaps must be finite and non-negative (mean squared gaps)")
         return g > self.threshold
+
+
+def _held_out_counts(lam: np.ndarray, capacity: np.ndarray, size: int, r: np.random.Generator) -> np.ndarray:
+    """Members taken from each source for a target of ``size``: multinomial by λ, capped by ``capacity`` (K,),
+    the overflow re-drawn among sources with room left; the total is min(size, Σ capacity)."""
+    counts = np.zeros(lam.size, dtype=np.int64)
+    left = int(min(size, capacity.sum()))
+    while left > 0:
+        room = capacity - counts
+        p = np.where(room > 0, lam, 0.0)
+        p = p / p.sum() if p.sum() > 0 else (room > 0) / np.count_nonzero(room > 0)
+        counts = np.minimum(counts + r.multinomial(left, p), capacity)
+        left = int(min(size, capacity.sum())) - int(counts.sum())
+    return counts
+
+
+def calibrate_on_sources(
+    sources: Sequence[Domain],
+    n_targets: int = 100,
+    n_points: int = 16,
+    false_alarm_rate: float = 0.05,
+    seed: int = 0,
+    *,
+    target_size: int | None = None,
+    solver: SimplexLeastSquares | None = None,
+    progress: bool = False,
+) -> OddDetector:
+    """An :class:`OddDetector` on :attr:`Relation.relative_gap`, calibrated on in-ODD targets made from the sources.
+
+    The statistic is the scale-free relative gap δ/mean(b²), not δ: targets of different spread have densities, hence
+    gaps, of different scales. Use the detector as
+    ``detector.decide(relate(target, sources, n_points, s).relative_gap)`` with the same ``sources`` and ``n_points``.
+
+    An exact mixture Σₖ λₖ p̂_𝒮ₖ of the sources' characterizations has δ = 0, so it cannot calibrate anything: a real
+    in-ODD target is a *new, finite* bag of observations from the mixture of the source domains, none of which is in
+    a source bag. Each calibration target t is made so (the sources must be :class:`components.domain.Domain` bags
+    sharing one posterior), by holding observations out of the sources:
+
+    1. λ ~ Dirichlet(1, …, 1); counts mₖ ~ Multinomial(``target_size``, λ), each at most half of source k's members of
+       positive weight (overflow re-drawn among the other sources; the bag is smaller when the sources cannot hold
+       out ``target_size`` members in all);
+    2. the target is the bag of mₖ members drawn from each source k without replacement (by weight), equally weighted:
+       the composition of :func:`components.domain.mixture_of` (sources, λ) with fresh members;
+    3. its relative gap from ``relate(target, sources without their held-out members, n_points)``.
+
+    The threshold is the split-conformal rank of these ``n_targets`` gaps (:meth:`OddDetector.calibrate`). Holding
+    out, rather than resampling the sources' own members into the target, matters: a target that shares members with
+    the sources matches them exactly where their posteriors are sharp, its gaps are far too small, and fresh in-ODD
+    targets are then flagged far above α (measured 15–50 % for α = 5 % with sharp posteriors). Held out, the rate is
+    close to α; it is lower (conservative) when the target is large next to the sources, as the reduced sources and
+    the capped targets make the calibration gaps larger. Measured on bags of known densities (Gaussian posteriors of
+    σ = 0.1 and 0.5 over three uniform boxes of side 2, sources of 25 and 80 observations, targets of 10 and 30,
+    α = 0.05; tests/test_relative.py): 0.02–0.07, and 0.002–0.045 for targets of 30 from sources of 25.
+
+    Arguments:
+        sources: K ≥ 1 source domains (with one source, the detector tests whether the target is like that source);
+            at least one needs two members of positive weight.
+        n_targets: number of calibration targets; at least ⌈(1−α)/α⌉ (19 for α = 0.05).
+        n_points: n_W of :func:`relate`, the same as for the target to decide on.
+        false_alarm_rate: α ∈ (0, 1).
+        seed: root of the streams ``(seed, "relative", "calibration", t, …)`` of target t.
+        target_size: observations in each calibration target: the size of the target to decide on (the in-ODD gap
+            shrinks as the bag grows); default half the mean size of the sources.
+        solver: the :class:`SimplexLeastSquares` to use (default the module's shared one).
+        progress: show a tqdm bar over the calibration targets.
+    """
+    from components.domain import Domain
+
+    sources = list(sources)
+    if not sources:
+        raise ValueError("calibrate_on_sources needs at least one source domain")
+    for k, s in enumerate(sources):
+        if not isinstance(s, Domain):
+            raise TypeError(f"sources[{k}] must be a components.domain.Domain (a bag to hold out from), "
+                            f"got {type(s).__name__}")
+    for k, s in enumerate(sources[1:], start=1):
+        if s.posterior is not sources[0].posterior or s.bag.shape[1:] != sources[0].bag.shape[1:]:
+            raise ValueError(f"sources[{k}] uses another posterior or observation shape than sources[0]: the "
+                             "calibration targets mix members of all sources under one estimator")
+    alpha = float(false_alarm_rate)
+    if not (0.0 < alpha < 1.0):
+        raise ValueError(f"false_alarm_rate must be in (0, 1), got {false_alarm_rate!r}")
+    need = math.ceil((1.0 - alpha) / alpha - 1e-9)
+    if isinstance(n_targets, bool) or not isinstance(n_targets, (int, np.integer)) or n_targets < need:
+        raise ValueError(f"n_targets must be an integer ≥ {need} for false_alarm_rate {alpha}, got {n_targets!r}")
+    if target_size is None:
+        target_size = max(1, round(float(np.mean([len(s) for s in sources])) / 2))
+    if isinstance(target_size, bool) or not isinstance(target_size, (int, np.integer)) or target_size < 1:
+        raise ValueError(f"target_size must be a positive integer, got {target_size!r}")
+    positive = [np.flatnonzero(s.weights > 0) for s in sources]
+    capacity = np.array([p.size // 2 for p in positive], dtype=np.int64)
+    if capacity.sum() == 0:
+        raise ValueError("the sources are too small to hold out a calibration target: at least one needs two "
+                         "members of positive weight")
+    k = len(sources)
+    steps = range(int(n_targets))
+    if progress:
+        from tqdm.auto import tqdm
+
+        steps = tqdm(steps, desc="calibrating the ODD threshold", unit="target")
+    gaps = np.empty(int(n_targets))
+    for t in steps:
+        r = rng(seed, "relative", "calibration", t)
+        counts = _held_out_counts(r.dirichlet(np.ones(k)), capacity, int(target_size), r)
+        held, reduced = [], []
+        for s, members, m in zip(sources, positive, counts):
+            w = s.weights[members]
+            out = r.choice(members, size=int(m), replace=False, p=w / w.sum()) if m else members[:0]
+            keep = np.setdiff1d(np.arange(len(s)), out)
+            held.append(s.bag[out])
+            reduced.append(Domain(s.posterior, s.bag[keep], s.weights[keep]))
+        target = Domain(sources[0].posterior, np.concatenate(held))
+        rel = relate(target, reduced, n_points, derive_seed(seed, "relative", "calibration", t, "relate"),
+                     solver=solver)
+        gaps[t] = rel.relative_gap
+    return OddDetector.calibrate(gaps, alpha)

@@ -18,6 +18,7 @@ leaves the box.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 from pathlib import Path
@@ -141,6 +142,17 @@ class OnnxPosterior:
             return cls(folder, card, sessions)
         except (KeyError, TypeError, IndexError) as e:
             raise ValueError(f"{folder / 'card.json'}: malformed model card ({type(e).__name__}: {e})") from None
+
+    def on_context(self) -> OnnxPosterior:
+        """The same posterior taking the context ``c = self.context(x)`` as its input ``x`` (shape ``(B, features)``).
+
+        For bags evaluated many times (Task III): compute each image's context once, then every ``log_prob`` and
+        ``sample`` call skips the context graph (for a CNN embedding, the costly part). Shares the sessions.
+        """
+        view = copy.copy(self)
+        view.input_shape = (self.features,)
+        view._context_of = lambda x32: x32  # type: ignore[method-assign]
+        return view
 
     # --- inputs ------------------------------------------------------------------------------------------
 

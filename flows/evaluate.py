@@ -1,10 +1,12 @@
 """The ``evaluate`` stage: Task I for every model of the grid on the test split.
 
-``python -m flows.evaluate [--params params.yaml]``. Per model: posterior samples and their
+``python -m flows.evaluate [--params params.yaml]``. The models are the exported ones of ``registry/``, run on the
+torch-free onnxruntime posterior (what a vehicle would run). Per model: posterior samples and their
 log-densities for the first ``evaluate.images`` test images, HPD credibility of the ground truth,
 expected coverage, calibration error, signed coverage area, superiority π, test NLL, information gain
 and a quantitative posterior predictive check. Writes ``reports/task1/metrics.json`` and PNG plots,
-and logs the metrics and plots to each model's MLflow run.
+and logs the metrics and plots to each model's MLflow run. Finally the best-calibrated model gets the MLflow alias
+``champion`` and the pointer ``reports/task1/champion.json`` (:func:`flows.export.set_champion`).
 """
 
 from __future__ import annotations
@@ -15,7 +17,6 @@ from pathlib import Path
 
 import mlflow
 import numpy as np
-import torch
 from prefect import flow, get_run_logger, task
 from tqdm.auto import tqdm
 
@@ -23,8 +24,9 @@ from components import dataset, diagnostics, features, plots, ppc, seeding, weat
 from components.backbones import get_backbone
 from components.config import PROJECT_ROOT, Params, load_params
 from components.files import atomic_write_bytes
-from components.posterior.store import load_npe
+from components.runtime import OnnxPosterior
 from components.simulator.base import make_simulator
+from flows.export import registry_root, set_champion
 from flows.features import features_root
 from flows.generate import data_root
 from flows.train import model_inputs, tracking_uri
@@ -38,9 +40,9 @@ def model_ids(params: Params) -> list[str]:
     return grid + [f"{v.backbone}-{v.size}-{name}" for name, v in params.train.variants.items()]
 
 
-def check_model_matches_data(header: dict, params: Params, path: Path) -> None:
+def check_model_matches_data(box: weather.Box, params: Params, path: Path) -> None:
     """The model's θ order, units and prior box must be the dataset's."""
-    box = header["box"]
+    box = {"names": list(box.names), "units": list(box.units), "low": box.low, "high": box.high}
     if tuple(box["names"]) != weather.PREDICTED:
         raise ValueError(f"{path}: the model's θ order {box['names']} differs from the dataset's {list(weather.PREDICTED)}")
     units = tuple(weather.PARAMETERS[n].unit for n in weather.PREDICTED)
@@ -50,16 +52,15 @@ def check_model_matches_data(header: dict, params: Params, path: Path) -> None:
         raise ValueError(f"{path}: the model's prior box differs from params.yaml's prior")
 
 
-@torch.no_grad()
-def posterior_draws(model, x: torch.Tensor, theta: np.ndarray, n: int, seed: int, chunk: int = 25):
-    """Samples ``(N, n, 6)``, their log-densities ``(N, n)`` and the truth's ``(N,)`` for N inputs."""
+def posterior_draws(posterior: OnnxPosterior, x: np.ndarray, theta: np.ndarray, n: int, seed: int, chunk: int = 25):
+    """Samples ``(N, n, 6)``, their log-densities ``(N, n)`` and the truth's ``(N,)`` for N inputs ``x``."""
     out_s, out_lp, out_lt = [], [], []
     for s in range(0, len(x), chunk):
         xs = x[s : s + chunk]
-        th, lp = model.sample_and_log_prob(xs, n, rng=seeding.derive_seed(seed, "evaluate", s) % 2**63)
-        out_s.append(th.double().numpy())
-        out_lp.append(lp.double().numpy())
-        out_lt.append(model.log_prob(torch.from_numpy(theta[s : s + chunk]).float(), xs).double().numpy())
+        th, lp = posterior.sample_and_log_prob(xs, n, seed=seeding.derive_seed(seed, "evaluate", s))
+        out_s.append(th)
+        out_lp.append(lp)
+        out_lt.append(posterior.log_prob(theta[s : s + chunk], xs))
     return np.concatenate(out_s), np.concatenate(out_lp), np.concatenate(out_lt)
 
 
@@ -69,15 +70,17 @@ def evaluate_model(model_id: str, params_path: str, out: str) -> dict:
     params = load_params(params_file)
     ev = params.evaluate
     base = params_file.resolve().parent
-    path = base / "models" / model_id / "model.pt"
-    model, header = load_npe(path)
-    check_model_matches_data(header, params, path)
+    folder = registry_root(params_file) / model_id
+    posterior = OnnxPosterior.load(folder)
+    check_model_matches_data(posterior.box, params, folder / "card.json")
+    card = posterior.card
     test = dataset.open_split(data_root(params, params_file), "test")
     n = min(ev.images, len(test))
-    backbone = get_backbone(header["backbone"], **header["backbone_options"])
-    x = model_inputs(backbone, features.open_features(features_root(params_file), header["backbone"], test, stop=n))
+    backbone = get_backbone(card["backbone"], **card["backbone_options"])
+    cached = features.open_features(features_root(params_file), card["backbone"], test, stop=n)
+    x = model_inputs(backbone, cached).numpy()
     truth = test.theta[:n]
-    samples, lp, lp_truth = posterior_draws(model, x, truth, ev.samples, seeding.derive_seed(params.seed, model_id))
+    samples, lp, lp_truth = posterior_draws(posterior, x, truth, ev.samples, seeding.derive_seed(params.seed, model_id))
 
     cred = diagnostics.hpd_credibility(lp, lp_truth)
     coverage = diagnostics.expected_coverage(cred, LEVELS)
@@ -151,9 +154,9 @@ def evaluate(params_path: str) -> dict:
     base = params_file.resolve().parent
     out = base / "reports" / "task1"
     ids = model_ids(params)
-    missing = [m for m in ids if not (base / "models" / m / "model.pt").is_file()]
+    missing = [m for m in ids if not (registry_root(params_file) / m / "card.json").is_file()]
     if missing:
-        raise FileNotFoundError(f"no trained model for {', '.join(missing)}: run `dvc repro train`")
+        raise FileNotFoundError(f"no exported model in registry/ for {', '.join(missing)}: run `dvc repro export`")
     dataset.open_split(data_root(params, params_file), "test")  # a missing test split fails here, before any work
     results = [evaluate_model(m, str(params_file), str(out)) for m in tqdm(ids, desc="evaluate models", unit="model")]
 
@@ -165,6 +168,9 @@ def evaluate(params_path: str) -> dict:
     rows = [{"model": m, "level": float(l), "coverage": float(c)} for m, (ls, cs) in curves.items() for l, c in zip(ls, cs)]
     atomic_write_bytes(out / "coverage.json", json.dumps(rows).encode())
     log_to_mlflow(base, params.train.experiment, results, out)
+    champion = set_champion(params, base, metrics)
+    logger.info("champion (lowest %s): %s = %.3f, %s", champion["metric"], champion["model"], champion["value"],
+                champion.get("uri", "not in the MLflow Model Registry"))
     for m, v in metrics.items():
         logger.info("%s: calibration error %.3f, coverage gap %+.3f, π median %.2f, NLL %.2f, PPC %.2f", m,
                     v["calibration_error"], v["coverage_auc_gap"], v["pi_median"], v["test_nll"], v["ppc_score"])

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import os
+import shutil
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -31,12 +34,20 @@ def micro_params(**overrides) -> dict:
     """The default params.yaml shrunk to a few tiny images (for pipeline tests)."""
     p = yaml.safe_load((PROJECT_ROOT / "params.yaml").read_text())
     p["simulator"].update(height=32, width=32)
-    p["data"].update(splits={"train": 24, "val": 8, "test": 8}, shard_size=10, images_per_scene=4)
+    p["data"].update(splits={"train": 24, "val": 8, "test": 48}, shard_size=10, images_per_scene=4)
     p["data"]["runner"].update(kind="threads", workers=2)
     p["contact_sheet"].update(steps=3, scenes=1)
     p["train"]["sizes"] = [8, 16, 24]
     p["train"]["variants"] = {"balanced": {"backbone": "cues", "size": 16, "balance": 10.0}}
     p["evaluate"].update(images=8, samples=400, ppc_images=1, ppc_renders=2, example_images=1)
+    p["task2"].update(images=16, images_per_scene=4, samples=200)
+    p["task3"].update(bags={  # wide sub-boxes: the micro test split is small
+        "b0": {"box": {"sun_altitude_angle": [-90, -10]}, "max_images": 8},
+        "b1": {"box": {"sun_altitude_angle": [0, 90], "cloudiness": [0, 50]}, "max_images": 3},
+        "b2": {"box": {"sun_altitude_angle": [0, 90], "cloudiness": [50, 100], "precipitation": [0, 50]}, "max_images": 2},
+        "b3": {"box": {"sun_altitude_angle": [0, 90], "cloudiness": [50, 100], "precipitation": [50, 100]},
+               "max_images": 2},
+    }, etas=[0.0, 0.5, 1.0], repetitions=3, n_points=8, calibration_targets=20, false_alarm_rate=0.1)
     for key, value in overrides.items():
         section, _, name = key.partition(".")
         if name:
@@ -90,3 +101,46 @@ def prefect_server(tmp_path_factory):
         except subprocess.TimeoutExpired:
             proc.kill()
         log.close()
+
+
+FAST_TRAINING = {"train.epochs": 2, "train.embedding_epochs": 1, "train.sizes": [8, 24],
+                 "train.variants": {"ensemble": {"backbone": "cues", "size": 24, "ensemble": 2}},
+                 "backbones": {"names": ["cues", "cnn"], "pretrained_dir": None, "batch_size": 256},
+                 "train.flow": {"transforms": 1, "hidden_features": [16], "bins": 4, "passes": 2, "ensemble": 1}}
+
+
+def run_in(cmd, cwd, env: dict | None = None, timeout: float = 600, **kw) -> subprocess.CompletedProcess:
+    """Run ``cmd`` in ``cwd`` with this interpreter's ``python`` first on PATH (DVC runs stage commands through
+    the shell) and ``cwd`` on PYTHONPATH (the project's copies of components/ and flows/, not the editable install's)."""
+    path = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
+    full_env = {**os.environ, "PYTHONPATH": str(cwd), "PATH": path, **(env or {})}
+    return subprocess.run(cmd, cwd=cwd, env=full_env, capture_output=True, text=True, timeout=timeout, **kw)
+
+
+def copy_project(src: Path, dst: Path) -> Path:
+    """A full copy of a project folder (git and DVC state, cache and outputs included) to change on its own."""
+    shutil.copytree(src, dst, symlinks=True, ignore=shutil.ignore_patterns("__pycache__"))
+    return dst
+
+
+@pytest.fixture(scope="session")
+def micro_project(tmp_path_factory, prefect_server) -> Path:
+    """A micro pidc project built once with `dvc repro`: a temp git repo with the project's components/, flows/,
+    dvc.yaml and prefect.yaml, params.yaml shrunk to a few tiny images and FAST_TRAINING, every stage run through
+    its Prefect flow against the session's Prefect server. Shared: read it, or change a `copy_project` of it."""
+    repo = tmp_path_factory.mktemp("micro-project") / "repo"
+    repo.mkdir()
+    for name in ("components", "flows"):
+        shutil.copytree(PROJECT_ROOT / name, repo / name, ignore=shutil.ignore_patterns("__pycache__"))
+    for name in ("dvc.yaml", "prefect.yaml"):
+        if (PROJECT_ROOT / name).is_file():
+            shutil.copy(PROJECT_ROOT / name, repo / name)
+    write_params(repo, **FAST_TRAINING)
+    dvc = [sys.executable, "-m", "dvc"]
+    for cmd in (["git", "init", "-q"], dvc + ["init", "-q"], dvc + ["config", "core.analytics", "false"]):
+        r = run_in(cmd, repo)
+        assert r.returncode == 0, r.stdout + r.stderr
+    r = run_in(dvc + ["repro"], repo, env={"PREFECT_API_URL": prefect_server})  # one server for every stage, as run.sh
+    if r.returncode != 0:
+        raise RuntimeError(f"`dvc repro` of the micro project failed:\n{r.stdout}\n{r.stderr}")
+    return repo

@@ -42,6 +42,16 @@ def test_unknown_key_is_named():
         (lambda d: d["evaluate"].update(samples=100), r"evaluate\.samples: Input should be greater than or equal to 400"),
         (lambda d: d["evaluate"].update(images=5000), r"evaluate.images is 5000 but the test split has only 2000"),
         (lambda d: d.pop("seed") and d.update(seed=None), r"seed"),
+        (lambda d: d["export"].update(exporter="tf"), r"export\.exporter"),
+        (lambda d: d["task2"]["fixed"].pop("cloudiness"), r"task2\.fixed: .*must give exactly"),
+        (lambda d: d["task2"]["modes"][0].update(std=[0, 1]), r"task2\.modes\.0\.std"),
+        (lambda d: d["task3"]["bags"]["b0"]["box"].update(sun_altitude_angle=[-90, 30]),
+         r"bags\.b0\.box overlaps bags\.b1\.box"),
+        (lambda d: d["task3"].update(weights=[0.5, 0.6, 0.1]), r"weights must sum to 1"),
+        (lambda d: d["task3"].update(weights=[0.5, 0.5]), r"weights has 2 entries for 3 sources"),
+        (lambda d: d["task3"].update(etas=[0.5, 1.0]), r"etas must contain 0"),
+        (lambda d: d["task3"]["bags"].pop("b2"), r"bags must be b0 \(out of the ODD\), b1, b2"),
+        (lambda d: d["task3"]["bags"]["b1"]["box"].update(fog=[0, 1]), r"bags\.b1\.box: prior box: unknown"),
     ],
 )
 def test_bad_values_are_named(edit, message):

@@ -3,18 +3,14 @@
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from components import dataset
-from components.config import PROJECT_ROOT, load_params
-from tests.conftest import write_params
+from components.config import load_params
+from tests.conftest import FAST_TRAINING, copy_project, run_in, write_params
 
 
 def test_flow_generates_and_resumes_after_damage(tmp_path, prefect_harness):
@@ -22,7 +18,7 @@ def test_flow_generates_and_resumes_after_damage(tmp_path, prefect_harness):
 
     params = write_params(tmp_path)
     first = generate(str(params))
-    assert {k: v["count"] for k, v in first["splits"].items()} == {"train": 24, "val": 8, "test": 8}
+    assert {k: v["count"] for k, v in first["splits"].items()} == {"train": 24, "val": 8, "test": 48}
     assert (tmp_path / "reports/data/contact_sheet.png").stat().st_size > 1000
     train = dataset.open_split(tmp_path / "data", "train", verify=True)
     assert train.images().shape == (24, 32, 32, 3)
@@ -66,39 +62,14 @@ def test_flow_rejects_bad_params_before_work(tmp_path, prefect_harness):
     assert not (tmp_path / "data").exists()
 
 
-FAST_TRAINING = {"train.epochs": 2, "train.embedding_epochs": 1, "train.sizes": [8, 24],
-                 "train.variants": {"ensemble": {"backbone": "cues", "size": 24, "ensemble": 2}},
-                 "backbones": {"names": ["cues", "cnn"], "pretrained_dir": None, "batch_size": 256},
-                 "train.flow": {"transforms": 1, "hidden_features": [16], "bins": 4, "passes": 2, "ensemble": 1}}
-
-
-def _run(cmd, cwd, **kw):
-    # DVC runs stage commands through the shell: `python` must be this interpreter
-    path = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
-    env = dict(os.environ, PYTHONPATH=str(cwd), PATH=path)
-    return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=600, **kw)
-
-
 @pytest.mark.slow
-def test_dvc_repro_pipeline_in_a_temp_git_repo(tmp_path, prefect_server, monkeypatch):
+def test_dvc_repro_pipeline_in_a_temp_git_repo(micro_project, tmp_path, prefect_server):
     """`dvc repro` runs every stage through its Prefect flow; a second run does nothing; a params change reruns."""
-    repo = tmp_path / "repo"
-    repo.mkdir()
-    for name in ("components", "flows"):
-        shutil.copytree(PROJECT_ROOT / name, repo / name, ignore=shutil.ignore_patterns("__pycache__"))
-    shutil.copy(PROJECT_ROOT / "dvc.yaml", repo / "dvc.yaml")
-    write_params(repo, **FAST_TRAINING)
-    dvc = [sys.executable, "-m", "dvc"]
-    monkeypatch.setenv("PREFECT_API_URL", prefect_server)  # every stage reports to one server (as run.sh does)
-    for cmd in (["git", "init", "-q"], dvc + ["init", "-q"], dvc + ["config", "core.analytics", "false"]):
-        assert _run(cmd, repo).returncode == 0
-
-    r = _run(dvc + ["repro"], repo)
-    assert r.returncode == 0, r.stdout + r.stderr
+    repo = micro_project  # built once per session by `dvc repro` (tests/conftest.py)
     manifest = json.loads((repo / "data/manifest.json").read_text())
     assert manifest["splits"]["train"]["count"] == 24
     lock = (repo / "dvc.lock").read_text()
-    stages = ["generate", "evaluate", "features@cues", "features@cnn", "variant@ensemble"]
+    stages = ["generate", "evaluate", "task2", "task3", "features@cues", "features@cnn", "variant@ensemble"]
     stages += [f"train@{b}-{n}" for b in ("cues", "cnn") for n in (8, 24)]
     for stage in stages:
         assert f"{stage}:" in lock, stage
@@ -108,13 +79,38 @@ def test_dvc_repro_pipeline_in_a_temp_git_repo(tmp_path, prefect_server, monkeyp
     task1 = json.loads((repo / "reports/task1/metrics.json").read_text())
     assert set(task1) == {"cues-8", "cues-24", "cnn-8", "cnn-24", "cues-24-ensemble"} and all(np.isfinite(m["test_nll"]) for m in task1.values())
     assert (repo / "reports/task1/plots/coverage.png").is_file() and (repo / "mlflow.db").is_file()
+    # export: every model in registry/ (loaded by the torch-free runtime) and the champion named
+    for model in task1:
+        assert f"export@{model}:" in lock or f"export-variant@{model.rsplit('-', 1)[1]}:" in lock, model
+        card = json.loads((repo / "registry" / model / "card.json").read_text())
+        assert card["model_id"] == model and card["data_hash"] and set(card["files"]) >= {"context", "log_prob", "sample_0"}
+    champion = json.loads((repo / "reports/task1/champion.json").read_text())
+    assert champion["model"] == min(task1, key=lambda m: task1[m]["calibration_error"])
+    # Task II: the bag's characterization against the known distribution
+    task2 = json.loads((repo / "reports/task2/metrics.json").read_text())
+    assert task2["model"] == champion["model"] and 0 <= task2["true_mass_in_hdr"] <= 1
+    assert len(task2["log_density_at_modes"]) == 3 and task2["energy_distance"] > 0
+    for name in ("corner-truth-vs-estimate.png", "corner-overlay.png", "bag.png"):
+        assert (repo / "reports/task2/plots" / name).stat().st_size > 5000, name
+    # Task III: per η the paper's statistics; AUC for η > 0; the ODD threshold with its false-alarm rate
+    task3 = json.loads((repo / "reports/task3/metrics.json").read_text())
+    assert list(task3["eta"]) == ["0", "0.5", "1"] and task3["experiments"] == 2 * 3 * 3
+    assert all({"d_e_median", "gap_median", "baseline_gap_median"} <= set(v) for v in task3["eta"].values())
+    assert "auc" not in task3["eta"]["0"] and all(0 <= task3["eta"][k]["auc"] <= 1 for k in ("0.5", "1"))
+    assert task3["odd"]["false_alarm_rate"] == 0.1 and task3["odd"]["targets"] == "fresh"
+    for name in ("d_e.png", "gap.png", "relative-gap.png", "roc.png", "d_e-fresh.png"):
+        assert (repo / "reports/task3/plots" / name).stat().st_size > 5000, name
 
-    r = _run(dvc + ["repro"], repo)
+    # the rest changes the project: on a copy, so the shared micro project stays as built
+    repo = copy_project(micro_project, tmp_path / "repo")
+    dvc = [sys.executable, "-m", "dvc"]
+    server = {"PREFECT_API_URL": prefect_server}
+    r = run_in(dvc + ["repro"], repo, env=server)
     assert r.returncode == 0 and "Data and pipelines are up to date" in (r.stdout + r.stderr), r.stdout + r.stderr
 
     # a params change reruns the stage, and the data follow the new seed
     write_params(repo, seed=7, **FAST_TRAINING)
-    r = _run(dvc + ["repro", "generate"], repo)
+    r = run_in(dvc + ["repro", "generate"], repo, env=server)
     assert r.returncode == 0, r.stdout + r.stderr
     new = json.loads((repo / "data/manifest.json").read_text())
     assert new["content_hash"] != manifest["content_hash"] and new["seed"] == 7

@@ -16,6 +16,7 @@ from components.relative import (
     OddDetector,
     Relation,
     SimplexLeastSquares,
+    calibrate_on_sources,
     chance_baseline_gap,
     fit_weights,
     mean_squared_gap,
@@ -264,3 +265,99 @@ def test_bad_inputs_give_clear_errors(world):
         simplex_distance([0.5, 0.6], [0.5, 0.5])
     with pytest.raises(ValueError, match="different numbers"):
         simplex_distance([0.5, 0.5], [0.2, 0.3, 0.5])
+
+
+# --- calibrate_on_sources: the ODD threshold from the sources themselves -------------------------------------------
+
+FA_TOLERANCE = 4 * np.hypot(0.015, 0.0126)  # Beta(10, 190) of the calibrated rate ⊕ binomial noise over 300 targets
+
+
+def fresh_in_odd_relative_gaps(post, sources, first: int, count: int, n: int, boxes=None) -> np.ndarray:
+    """Relative gaps of fresh bags of n observations from Σₖ λₖ U(boxₖ), λ ~ Dirichlet(1, …, 1)."""
+    boxes = SOURCE_BOXES if boxes is None else boxes
+    r = rng(first, "test", "fresh-lambdas")
+    out = []
+    for i in range(count):
+        g = rng(first + i, "test", "fresh-bag")
+        which = g.choice(len(boxes), size=n, p=g.dirichlet(np.ones(len(boxes))))
+        bag = np.stack([uniform_in(boxes[k], 1, g)[0] for k in which])
+        out.append(relate(Domain(post, bag), sources, 16, seed=int(r.integers(1 << 30))).relative_gap)
+    return np.array(out)
+
+
+def test_calibrated_on_sources_the_false_alarm_rate_holds_for_sharp_posteriors():
+    # σ = 0.1 ≪ the boxes' side 2: every fresh observation's posterior differs from all the sources' members, so
+    # calibration targets must be held out of the sources (resampling their own members gives rates of 15–50 %)
+    post = GaussianPosterior(0.1)
+    r = rng(1, "test", "sharp")
+    sources = [Domain(post, uniform_in(box, 60, r)) for box in SOURCE_BOXES]
+    alpha = 0.05
+    detector = calibrate_on_sources(sources, 199, 16, alpha, seed=21, target_size=10)
+    assert isinstance(detector, OddDetector) and detector.n_calibration == 199 and detector.false_alarm_rate == alpha
+    rate = detector.decide_many(fresh_in_odd_relative_gaps(post, sources, 8000, 300, 10)).mean()
+    assert abs(rate - alpha) < FA_TOLERANCE and rate >= 0.01, rate  # calibrated, and not uselessly conservative
+    # with posteriors this sharp and bags this small, even in-ODD gaps are large (≈ 0.8): only targets wholly
+    # outside the hull stand out (relative gap → 1)
+    outside = [Domain(post, uniform_in(OUT_BOX, 10, rng(s, "test", "outside"))) for s in range(10)]
+    assert all(detector.decide(relate(t, sources, 16, seed=s).relative_gap) for s, t in enumerate(outside))
+
+
+def test_calibrated_on_sources_flags_few_in_odd_and_all_out_of_odd_targets(world):
+    post, sources = world
+    detector = calibrate_on_sources(sources, 199, 16, 0.05, seed=21, target_size=10)
+    rate = detector.decide_many(fresh_in_odd_relative_gaps(post, sources, 7000, 300, 10)).mean()
+    assert rate < 0.05 + FA_TOLERANCE, rate
+    outside = [relate(out_odd_target(post, s, 0.5), sources, 16, seed=s).relative_gap for s in range(10)]
+    assert all(detector.decide(g) for g in outside)
+    # an exact mixture of the source characterizations has δ = 0: it could not have calibrated anything
+    assert detector.threshold > 1e3 * relate(mixture_of(sources, LAMBDA), sources, 16, seed=1).relative_gap
+    assert detector.threshold > 0.05
+
+
+def test_calibration_is_seeded_and_follows_the_target_size(world):
+    _, sources = world
+    a = calibrate_on_sources(sources, 40, 16, 0.05, seed=3, target_size=10)
+    assert a == calibrate_on_sources(sources, 40, 16, 0.05, seed=3, target_size=10)
+    assert a.threshold != calibrate_on_sources(sources, 40, 16, 0.05, seed=4, target_size=10).threshold
+    # default size: half the sources' mean bag size (27, 21, 26 → 12)
+    assert calibrate_on_sources(sources, 40, 16, 0.05, seed=3) == calibrate_on_sources(sources, 40, 16, 0.05, seed=3,
+                                                                                       target_size=12)
+    # small bags are noisier, so their in-ODD gaps (and the threshold) are larger
+    small = calibrate_on_sources(sources, 99, 16, 0.05, seed=5, target_size=4)
+    large = calibrate_on_sources(sources, 99, 16, 0.05, seed=5, target_size=30)
+    assert small.threshold > 1.5 * large.threshold
+
+
+def test_calibration_with_a_single_source_tests_likeness(world):
+    post, sources = world
+    detector = calibrate_on_sources([sources[0]], 199, 16, 0.05, seed=6, target_size=10)
+    like = fresh_in_odd_relative_gaps(post, [sources[0]], 100, 100, 10, boxes=[SOURCE_BOXES[0]])
+    assert detector.decide_many(like).mean() < 0.05 + FA_TOLERANCE
+    other = fresh_in_odd_relative_gaps(post, [sources[0]], 200, 20, 10, boxes=[SOURCE_BOXES[1]])
+    assert detector.decide_many(other).all()
+
+
+def test_calibration_errors(world):
+    post, sources = world
+    with pytest.raises(ValueError, match="at least one source"):
+        calibrate_on_sources([], 100)
+    with pytest.raises(TypeError, match=r"sources\[1\] must be a components.domain.Domain"):
+        calibrate_on_sources([sources[0], NaNDensity()], 100)
+    with pytest.raises(ValueError, match=r"sources\[1\] uses another posterior"):
+        calibrate_on_sources([sources[0], Domain(GaussianPosterior(0.5), sources[1].bag)], 100)
+    with pytest.raises(ValueError, match="n_targets must be an integer ≥ 19 for false_alarm_rate 0.05, got 18"):
+        calibrate_on_sources(sources, 18)
+    with pytest.raises(ValueError, match="n_targets must be an integer ≥ 99 for false_alarm_rate 0.01"):
+        calibrate_on_sources(sources, 50, false_alarm_rate=0.01)
+    with pytest.raises(ValueError, match="false_alarm_rate must be in"):
+        calibrate_on_sources(sources, 100, false_alarm_rate=1.0)
+    with pytest.raises(ValueError, match="target_size must be a positive integer"):
+        calibrate_on_sources(sources, 100, target_size=0)
+    with pytest.raises(ValueError, match="n_points = 2 cannot determine 3"):
+        calibrate_on_sources(sources, 19, n_points=2)
+    single = [Domain(post, s.bag[:1]) for s in sources]
+    with pytest.raises(ValueError, match="too small to hold out a calibration target"):
+        calibrate_on_sources(single, 19)
+    # one member of weight 0 does not count: two positive members are needed
+    with pytest.raises(ValueError, match="too small to hold out"):
+        calibrate_on_sources([Domain(post, sources[0].bag[:2], [1.0, 0.0])], 19)

@@ -75,11 +75,16 @@ def test_bad_grid_cell_is_named(project):
         train_model("resnet50", 8, str(params))
 
 
-def test_evaluate_writes_task1_metrics_plots_and_mlflow(project, monkeypatch):
-    """Task I on a 2 × 2 grid: every metric per model, the plots, and the metrics in each model's MLflow run."""
+def test_export_evaluate_champion(project, monkeypatch):
+    """A 2 × 2 grid and a variant: exported to registry/ and the MLflow Model Registry; Task I on the exported models
+    (every metric per model, the plots, the metrics in each model's MLflow run); the champion alias and pointer;
+    ``models:/<name>@champion`` loads and runs."""
+    import mlflow.pyfunc
     import yaml
 
+    from components.runtime import OnnxPosterior
     from flows.evaluate import evaluate
+    from flows.export import export_model, load_registered_model
     from flows.train import train_model
 
     folder, params = project
@@ -90,17 +95,35 @@ def test_evaluate_writes_task1_metrics_plots_and_mlflow(project, monkeypatch):
     p["train"]["sizes"] = [8, 16]
     grid = folder / "grid.yaml"
     grid.write_text(yaml.safe_dump(p))
-    with pytest.raises(FileNotFoundError, match="no trained model for cues-8, cnn-16"):
+    with pytest.raises(FileNotFoundError, match="no exported model in registry/ for cues-8, cues-16, cnn-8, cnn-16"):
         evaluate(str(grid))
+    with pytest.raises(FileNotFoundError, match="no trained model 'cues-8'"):
+        export_model("cues-8", str(grid))
     for m, s in (("cues", 8), ("cues", 16), ("cnn", 8), ("cnn", 16)):
         if not (folder / f"models/{m}-{s}/model.pt").exists():
             train_model(m, s, str(grid))
-    with pytest.raises(FileNotFoundError, match="no trained model for cues-16-balanced"):
+        export_model(f"{m}-{s}", str(grid))
+    with pytest.raises(FileNotFoundError, match="no exported model in registry/ for cues-16-balanced"):
         evaluate(str(grid))
     with pytest.raises(ValueError, match="variant 'balanced' is defined for cues-16, not cues-8"):
         train_model("cues", 8, str(grid), "balanced")
     variant = train_model("cues", 16, str(grid), "balanced")  # the calibrated variant beside the grid
     assert (folder / "models/cues-16-balanced/model.pt").is_file()
+    exported = export_model("cues-16-balanced", str(grid))
+    assert exported["name"] == "pidc-cues-16-balanced" and exported["version"] == "1"
+
+    # the registry folder: card with what the issue names; the runtime agrees with the torch model
+    card = json.loads((folder / "registry/cnn-16/card.json").read_text())
+    assert card["backbone"] == "cnn" and card["size"] == 16 and card["theta"]["names"][0] == "cloudiness"
+    assert card["opset"] == 18 and card["versions"]["onnxruntime"] and card["git_commit"] and card["data_hash"]
+    assert set(card["metrics"]) >= {"test_nll", "info_gain_nats"} and card["input"]["shape"][1:] == [3, 64, 64]
+    model, _ = load_npe(folder / "models/cnn-16/model.pt")
+    posterior = OnnxPosterior.load(folder / "registry/cnn-16")
+    x = torch.rand(3, 3, 64, 64)
+    theta = torch.tensor([[50.0, 10.0, 20.0, 30.0, 40.0, 50.0]]).repeat(3, 1)
+    with torch.no_grad():
+        expected = model.log_prob(theta, x).double().numpy()
+    assert np.abs(posterior.log_prob(theta.numpy(), x.numpy()) - expected).max() <= 1e-4
 
     metrics = evaluate(str(grid))
     assert set(metrics) == {"cues-8", "cues-16", "cnn-8", "cnn-16", "cues-16-balanced"}
@@ -120,13 +143,36 @@ def test_evaluate_writes_task1_metrics_plots_and_mlflow(project, monkeypatch):
     run = client.search_runs([exp.experiment_id], "tags.`pidc.model` = 'cues-8'", order_by=["attributes.start_time DESC"])[0]
     assert run.data.metrics["task1.calibration_error"] == pytest.approx(metrics["cues-8"]["calibration_error"])
 
+    # the MLflow Model Registry: one name per model, versions tagged with their metrics, the champion alias
+    names = {m.name for m in client.search_registered_models()}
+    assert names == {f"pidc-{m}" for m in metrics}
+    best = min(metrics, key=lambda m: metrics[m]["calibration_error"])
+    champion = json.loads((folder / "reports/task1/champion.json").read_text())
+    assert champion["model"] == best and champion["uri"] == f"models:/pidc-{best}@champion"
+    holders = [n for n in names if "champion" in client.get_registered_model(n).aliases]
+    assert holders == [f"pidc-{best}"], "exactly one registered model holds the alias"
+    version = client.get_model_version_by_alias(f"pidc-{best}", "champion")
+    assert float(version.tags["task1.calibration_error"]) == pytest.approx(metrics[best]["calibration_error"], rel=1e-5)
+    assert "train.test_nll" in version.tags and version.run_id == client.search_runs(
+        [exp.experiment_id], f"tags.`pidc.model` = '{best}'", order_by=["attributes.start_time DESC"])[0].info.run_id
+
+    loaded = load_registered_model(champion["uri"])  # the torch-free posterior from the registered model's files
+    local = OnnxPosterior.load(folder / "registry" / best)
+    x = np.random.default_rng(0).normal(size=(4, *local.input_shape)).astype(np.float32)
+    theta = local.sample(x, 1, seed=0)[:, 0]
+    np.testing.assert_allclose(loaded.log_prob(theta, x), local.log_prob(theta, x), rtol=0, atol=1e-9)
+    pyfunc = mlflow.pyfunc.load_model(champion["uri"])  # the ONNX flavor runs the whole density graph
+    out = pyfunc.predict({"x": x, "theta": theta.astype(np.float32)})["log_prob"]
+    np.testing.assert_allclose(out, local.log_prob(theta, x), atol=1e-3)
+
 
 def test_evaluate_refuses_a_model_with_another_theta_order(project, tmp_path):
-    from flows.evaluate import check_model_matches_data
+    from components import weather
     from components.config import load_params
+    from flows.evaluate import check_model_matches_data
 
     folder, params = project
-    _, header = load_npe(folder / "models/cues-16/model.pt")
-    header["box"]["names"] = list(reversed(header["box"]["names"]))
+    box = load_params(params).box
+    reordered = weather.Box(box.low[::-1], box.high[::-1], tuple(reversed(box.names)), tuple(reversed(box.units)))
     with pytest.raises(ValueError, match="θ order"):
-        check_model_matches_data(header, load_params(params), folder / "models/cues-16/model.pt")
+        check_model_matches_data(reordered, load_params(params), folder / "registry/cues-16/card.json")

@@ -1,0 +1,148 @@
+"""Task III's sweep (components.sweep) on a closed-form posterior: weights recovered in the ODD, detection outside,
+the calibrated false-alarm rate, determinism; and the known-distribution helpers of components.scenarios."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from components import weather
+from components.relative import OddDetector
+from components.scenarios import GaussianMixtureWeather, in_sub_box
+from components.seeding import rng
+from components.sweep import NoiseSweep, experiments_by_eta, summarize
+from tests.test_domain import GaussianPosterior
+from tests.test_relative import OUT_BOX, SOURCE_BOXES, uniform_in
+
+LAMBDA = (0.2, 0.3, 0.5)
+
+
+@pytest.fixture(scope="module")
+def sweep() -> NoiseSweep:
+    r = rng(1, "test", "sweep")
+    sources = [uniform_in(box, n, r) for box, n in zip(SOURCE_BOXES, (27, 21, 26))]
+    return NoiseSweep(GaussianPosterior(0.5), uniform_in(OUT_BOX, 60, r), sources, LAMBDA, n_points=16)
+
+
+def test_target_weights_put_eta_on_b0_and_lambda_on_the_sources(sweep):
+    w = sweep.target_weights(0.3, seed=5)
+    sizes = np.cumsum([0] + sweep.sizes)
+    assert w.sum() == pytest.approx(1.0) and np.all(w >= 0)
+    assert w[: sizes[1]].sum() == pytest.approx(0.3)
+    assert len(np.unique(np.round(w[: sizes[1]], 12))) > 1, "b0's images are randomly weighted"
+    for k, lam in enumerate(LAMBDA, start=1):
+        part = w[sizes[k] : sizes[k + 1]]
+        assert part.sum() == pytest.approx(0.7 * lam) and np.allclose(part, part[0]), "equal inside a source bag"
+    np.testing.assert_array_equal(w, sweep.target_weights(0.3, seed=5))
+    with pytest.raises(ValueError, match="η must be in"):
+        sweep.target_weights(1.5, seed=0)
+
+
+def test_in_odd_weights_are_recovered_and_out_of_odd_targets_are_detected(sweep):
+    """η = 0: the target is exactly Σ λₖ p̂ₖ, so λ̂ ≈ λ and δ ≈ 0; η ≥ 0.3: the relative gap separates (AUC ≈ 1)."""
+    detector, calibration = sweep.calibrate(60, 0.1, seed=0)
+    experiments = [sweep.run(eta, r, seed=0) for eta in (0.0, 0.3, 1.0) for r in range(20)]
+    in_odd = [e for e in experiments if e.eta == 0.0]
+    assert max(e.d_e for e in in_odd) < 0.02, "weights recovered when the target is in the ODD"
+    assert max(e.relative_gap for e in in_odd) < 1e-6
+    assert all(e.baseline_gap >= e.gap * (1 - 1e-6) for e in experiments), "the fitted λ̂ is never worse than chance"
+    summary = summarize(experiments, detector)
+    assert set(summary) == {"0", "0.3", "1"} and "auc" not in summary["0"]
+    assert summary["0.3"]["auc"] > 0.99 and summary["1"]["auc"] == 1.0
+    assert summary["1"]["flagged_rate"] == 1.0
+    assert summary["0"]["d_e_median"] < 0.02 < summary["1"]["d_e_median"]
+    rel = experiments_by_eta(experiments, "relative_gap")
+    assert list(rel) == [0.0, 0.3, 1.0] and rel[0.0].shape == (20,)
+
+
+def test_false_alarm_rate_holds_on_fresh_in_odd_targets():
+    """In-ODD targets whose gap is not exactly zero (a fresh bag of the source boxes replaces b0 at every η):
+    the detector calibrated for α = 0.2 on 60 targets flags fresh ones at rate α within a binomial tolerance."""
+    r = rng(2, "test", "sweep", "fresh")
+    sources = [uniform_in(box, n, r) for box, n in zip(SOURCE_BOXES, (27, 21, 26))]
+    which = r.choice(3, size=80, p=LAMBDA)
+    fresh = np.stack([uniform_in(SOURCE_BOXES[k], 1, r)[0] for k in which])  # in the ODD, not an exact mixture
+    sweep = NoiseSweep(GaussianPosterior(0.5), fresh, sources, LAMBDA, n_points=16)
+    alpha = 0.2
+    detector, _ = sweep.calibrate(60, alpha, seed=3)
+    gaps = np.array([sweep.run(0.0, k, seed=11).relative_gap for k in range(200)])
+    rate = detector.decide_many(gaps).mean()
+    tolerance = 3 * np.sqrt(alpha * (1 - alpha) / 200) + 1 / 61
+    assert abs(rate - alpha) <= tolerance, f"false-alarm rate {rate:.3f} vs α = {alpha}"
+
+
+def test_experiments_are_deterministic_and_errors_are_clear(sweep):
+    a, b = sweep.run(0.4, 3, seed=9), sweep.run(0.4, 3, seed=9)
+    assert a == b and sweep.run(0.4, 4, seed=9) != a
+    with pytest.raises(ValueError, match="bag b2 is empty"):
+        NoiseSweep(GaussianPosterior(0.5), np.zeros((3, 2)), [np.zeros((2, 2)), np.zeros((0, 2))], (0.5, 0.5))
+    with pytest.raises(ValueError, match="weights must be 2 values on the simplex"):
+        NoiseSweep(GaussianPosterior(0.5), np.zeros((3, 2)), [np.zeros((2, 2)), np.ones((2, 2))], (0.5, 0.6))
+    with pytest.raises(ValueError, match="η = 0"):
+        summarize([sweep.run(0.5, 0, seed=0)], OddDetector(1.0, 0.05, 100))
+
+
+def test_gaussian_mixture_weather_fixes_all_but_two_parameters():
+    box = weather.Box.from_mapping({})
+    fixed = {"cloudiness": 30.0, "sun_altitude_angle": 45.0, "wind_intensity": 20.0, "precipitation_deposits": 30.0}
+    dist = GaussianMixtureWeather(fixed, np.array([1.0, 3.0]), np.array([[10.0, 20.0], [70.0, 80.0]]),
+                                  np.array([[2.0, 2.0], [3.0, 3.0]]), box)
+    theta = dist.sample(20000, rng(0, "test", "mixture"))
+    assert theta.shape == (20000, 6) and np.all(box.contains(theta))
+    for name, value in fixed.items():
+        assert np.all(theta[:, box.names.index(name)] == value)
+    fog = theta[:, box.names.index("fog_density")]
+    share = np.mean(fog > 40)
+    assert abs(share - 0.75) < 4 * np.sqrt(0.75 * 0.25 / 20000), "component weights normalized and followed"
+    assert np.mean(fog[fog > 40]) == pytest.approx(70.0, abs=0.1)
+    modes = dist.modes()
+    assert modes.shape == (2, 6) and modes[1, box.names.index("precipitation")] == 80.0
+    # truncation: a component centred on the face keeps only its inside half
+    edge = GaussianMixtureWeather(fixed, np.array([1.0]), np.array([[0.0, 50.0]]), np.array([[5.0, 5.0]]), box)
+    assert np.all(edge.sample(2000, rng(0, "t"))[:, box.names.index("fog_density")] >= 0)
+    with pytest.raises(ValueError, match="fixed must give exactly"):
+        GaussianMixtureWeather({"cloudiness": 1.0}, np.ones(1), np.zeros((1, 2)), np.ones((1, 2)), box)
+    with pytest.raises(ValueError, match="outside the prior"):
+        GaussianMixtureWeather(fixed | {"cloudiness": 130.0}, np.ones(1), np.zeros((1, 2)), np.ones((1, 2)), box)
+    with pytest.raises(ValueError, match="positive"):
+        GaussianMixtureWeather(fixed, np.ones(1), np.zeros((1, 2)), np.zeros((1, 2)), box)
+
+
+def test_in_sub_box():
+    theta = np.array([[50, 50, 50, -50, 50, 50], [50, 50, 50, 50, 50, 50]], dtype=float)
+    np.testing.assert_array_equal(in_sub_box(theta, {"sun_altitude_angle": (-90, -15)}), [True, False])
+    with pytest.raises(ValueError, match="unknown predicted parameter"):
+        in_sub_box(theta, {"sunshine": (0, 1)})
+
+
+def test_fresh_targets_use_held_out_images_of_the_sources_weather():
+    """Fresh targets: the in-ODD part is a random same-size subset of each pool, so at η = 0 the gap is not zero
+    (a new bag of the same weather) but λ is still roughly recovered, η = 1 is told apart, and the detector calibrated
+    on fresh in-ODD targets flags fresh ones at about its rate."""
+    r = rng(3, "test", "sweep", "pools")
+    sizes = (27, 21, 26)
+    sources = [uniform_in(box, n, r) for box, n in zip(SOURCE_BOXES, sizes)]
+    pools = [uniform_in(box, 3 * n, r) for box, n in zip(SOURCE_BOXES, sizes)]
+    sweep = NoiseSweep(GaussianPosterior(0.5), uniform_in(OUT_BOX, 60, r), sources, LAMBDA, 16, fresh_pools=pools)
+    w = sweep.target_weights(0.0, seed=1, fresh=True)
+    offsets = np.cumsum([0, 60, *sizes, *(3 * n for n in sizes)])
+    assert w[: offsets[4]].sum() == 0, "the source bags themselves carry no weight in a fresh target"
+    for k, (lam, n) in enumerate(zip(LAMBDA, sizes)):
+        part = w[offsets[4 + k] : offsets[5 + k]]
+        assert np.count_nonzero(part) == n and part.sum() == pytest.approx(lam)
+    assert not np.array_equal(w, sweep.target_weights(0.0, seed=2, fresh=True)), "a new subset per experiment"
+    fresh0 = [sweep.run(0.0, k, seed=4, fresh=True) for k in range(40)]
+    assert np.median([e.relative_gap for e in fresh0]) > 1e-4, "a fresh in-ODD bag is not an exact mixture"
+    assert np.median([e.d_e for e in fresh0]) < 0.2
+    fresh1 = [sweep.run(1.0, k, seed=4, fresh=True) for k in range(20)]
+    assert min(e.relative_gap for e in fresh1) > max(e.relative_gap for e in fresh0)
+    alpha = 0.2
+    detector, _ = sweep.calibrate(60, alpha, seed=5, fresh=True)
+    rate = detector.decide_many([e.relative_gap for e in fresh0]).mean()
+    assert abs(rate - alpha) <= 3 * np.sqrt(alpha * (1 - alpha) / 40) + 1 / 61
+    plain = NoiseSweep(GaussianPosterior(0.5), uniform_in(OUT_BOX, 5, r), sources, LAMBDA)
+    with pytest.raises(ValueError, match="fresh targets need fresh_pools"):
+        plain.run(0.0, 0, seed=0, fresh=True)
+    with pytest.raises(ValueError, match="fresh pool of b2 has 3 observations"):
+        NoiseSweep(GaussianPosterior(0.5), uniform_in(OUT_BOX, 5, r), sources, LAMBDA,
+                   fresh_pools=[pools[0], pools[1][:3], pools[2]])

@@ -125,6 +125,25 @@ def test_log_prob_matches_torch(exported, kind):
 
 
 @pytest.mark.parametrize("kind", KINDS)
+def test_whole_density_graph_matches_torch(exported, kind):
+    """density.onnx (the MLflow ONNX flavor's model): (x, θ) → log q(θ | x) in physical units, −inf outside the box."""
+    import onnxruntime
+
+    model, _, folder = exported[kind]
+    x = _inputs(model, 7, seed=15)
+    theta = _theta(7, seed=16)
+    theta[3, 0] = BOX.low[0] - 1.0
+    with torch.no_grad():
+        expected = model.log_prob(torch.as_tensor(theta), torch.as_tensor(x)).double().numpy()
+    session = onnxruntime.InferenceSession(str(folder / "density.onnx"), providers=["CPUExecutionProvider"])
+    got = session.run(None, {"x": x.astype(np.float32), "theta": theta.astype(np.float32)})[0]
+    assert got.shape == (7,) and got[3] == -math.inf and expected[3] == -math.inf
+    finite = np.isfinite(expected)
+    # θ enters in float32 (the flavor's signature): the bijection of a float32 θ differs by ~1e-5 near the faces
+    np.testing.assert_allclose(got[finite], expected[finite], rtol=0, atol=1e-3)
+
+
+@pytest.mark.parametrize("kind", KINDS)
 def test_draws_from_the_same_noise_match_torch(exported, kind):
     model, runtime, _ = exported[kind]
     b, n = 4, 50
@@ -184,12 +203,13 @@ def test_card_describes_the_model(exported):
     assert card["bijection"]["low"] == BOX.low.tolist() and card["bijection"]["high"] == BOX.high.tolist()
     assert card["input"]["shape"] == ["batch", 3, 64, 64] and card["input"]["dtype"] == "float32"
     assert card["ensemble"] == 1 and card["opset"] >= 18
-    assert sorted(card["files"]) == ["context", "log_prob", "sample_0"]
+    assert sorted(card["files"]) == ["context", "density", "log_prob", "sample_0"]
     for entry in card["files"].values():
         proto = onnx.load(str(folder / entry["name"]))
         onnx.checker.check_model(proto)
         assert max(op.version for op in proto.opset_import if op.domain in ("", "ai.onnx")) >= OPSET
-    assert sorted(p.name for p in folder.iterdir()) == ["card.json", "context.onnx", "log_prob.onnx", "sample_0.onnx"]
+    assert sorted(p.name for p in folder.iterdir()) == ["card.json", "context.onnx", "density.onnx", "log_prob.onnx",
+                                                        "sample_0.onnx"]
 
 
 def test_clear_errors(exported, tmp_path):

@@ -28,6 +28,7 @@ __all__ = [
     "coverage_error",
     "energy_distance",
     "hdr_mass",
+    "roc_curve",
     "DEFAULT_LEVELS",
 ]
 
@@ -180,3 +181,41 @@ def hdr_mass(log_prob_estimate: object, log_prob_points: object, level: float) -
         raise ValueError("log-densities must be non-empty and free of NaN")
     threshold = np.quantile(est, 1.0 - float(level))
     return float(np.mean(pts >= threshold))
+
+
+def _scores(values: object, name: str) -> np.ndarray:
+    try:
+        a = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"scores[{name!r}] must be an array of numbers, got {type(values).__name__}") from None
+    if a.ndim != 1 or a.size == 0:
+        raise ValueError(f"scores[{name!r}] must be a non-empty 1-D array, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"scores[{name!r}] contains non-finite values")
+    return a
+
+
+def roc_curve(negatives: object, positives: object) -> tuple[np.ndarray, np.ndarray, float]:
+    """ROC of the decision "positive when score ≥ s" swept over every threshold s.
+
+    Arguments:
+        negatives: ``(m,)`` scores of negative cases (Task III: δ for targets in the ODD, η = 0).
+        positives: ``(p,)`` scores of positive cases (δ for targets out of the ODD, η > 0).
+
+    Returns:
+        ``(fpr, tpr, auc)``: false- and true-positive rates from (0, 0) to (1, 1) (one point per distinct score,
+        ties moving both rates at once), and the area under the curve (trapezoids), which equals the
+        Mann–Whitney probability P(score⁺ > score⁻) + ½ P(score⁺ = score⁻).
+    """
+    neg, pos = _scores(negatives, "negatives"), _scores(positives, "positives")
+    scores = np.concatenate([pos, neg])
+    is_pos = np.concatenate([np.ones(pos.size), np.zeros(neg.size)])
+    order = np.argsort(-scores, kind="mergesort")
+    scores, is_pos = scores[order], is_pos[order]
+    last_of_tie = np.r_[np.nonzero(np.diff(scores))[0], scores.size - 1]
+    tp = np.cumsum(is_pos)[last_of_tie]
+    fp = np.cumsum(1 - is_pos)[last_of_tie]
+    tpr = np.r_[0.0, tp / pos.size]
+    fpr = np.r_[0.0, fp / neg.size]
+    auc = float(np.sum(np.diff(fpr) * (tpr[1:] + tpr[:-1]) / 2))
+    return fpr, tpr, auc

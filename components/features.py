@@ -194,7 +194,12 @@ def posterior_inputs(backbone, images: np.ndarray, batch_size: int = 256) -> np.
     """The posterior's input ``x`` for uint8 images ``(n, H, W, 3)``: frozen features ``(n, dim)``, or a trainable
     backbone's preprocessed tensor ``(n, C, h, w)``; float32 numpy (what :class:`components.runtime.OnnxPosterior`
     takes)."""
-    cached = backbone_output(backbone, images, batch_size)
+    return inputs_from_cached(backbone, backbone_output(backbone, images, batch_size))
+
+
+def inputs_from_cached(backbone, cached: np.ndarray) -> np.ndarray:
+    """The posterior's input ``x`` (float32 numpy) from what :func:`backbone_output` cached: the features themselves,
+    or a trainable backbone's preprocessed tensor of its cached images."""
     if backbone.trainable:
         return backbone.preprocess(cached).detach().numpy().astype(np.float32, copy=False)
     return np.ascontiguousarray(cached, dtype=np.float32)

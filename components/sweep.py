@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from components.diagnostics import roc_curve
 from components.domain import Domain, Posterior
 from components.relative import OddDetector, SimplexLeastSquares, chance_baseline_gap, relate, simplex_distance
 from components.seeding import derive_seed, rng
@@ -153,12 +154,6 @@ class NoiseSweep:
         return OddDetector.calibrate(gaps, false_alarm_rate), gaps
 
 
-def _auc(negatives: np.ndarray, positives: np.ndarray) -> float:
-    """P(score⁺ > score⁻) + ½ P(score⁺ = score⁻) (Mann–Whitney)."""
-    diff = positives[:, None] - negatives[None, :]
-    return float(np.mean(diff > 0) + 0.5 * np.mean(diff == 0))
-
-
 def summarize(experiments: Sequence[Experiment], detector: OddDetector) -> dict[str, dict[str, float]]:
     """Per η (keys formatted ``"0.1"``): medians of d_E, δ, the chance baseline δ and the relative gaps; the share
     flagged out of the ODD at the detector's threshold; and (η > 0) the AUC of the relative gap and of δ against the
@@ -185,8 +180,8 @@ def summarize(experiments: Sequence[Experiment], detector: OddDetector) -> dict[
             "repetitions": len(es),
         }
         if eta > 0:
-            row["auc"] = _auc(ref_rel, rel)
-            row["auc_gap"] = _auc(ref_gap, gap)
+            row["auc"] = roc_curve(ref_rel, rel)[2]
+            row["auc_gap"] = roc_curve(ref_gap, gap)[2]
         out[f"{eta:g}"] = row
     return out
 

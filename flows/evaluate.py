@@ -26,10 +26,10 @@ from components.config import PROJECT_ROOT, Params, load_params
 from components.files import atomic_write_bytes
 from components.runtime import OnnxPosterior
 from components.simulator.base import make_simulator
-from flows.export import registry_root, set_champion
+from flows.export import newest_model_run, registry_root, set_champion
 from flows.features import features_root
 from flows.generate import data_root
-from flows.train import model_inputs, tracking_uri
+from flows.train import tracking_uri
 
 LEVELS = diagnostics.DEFAULT_LEVELS
 
@@ -78,7 +78,7 @@ def evaluate_model(model_id: str, params_path: str, out: str) -> dict:
     n = min(ev.images, len(test))
     backbone = get_backbone(card["backbone"], **card["backbone_options"])
     cached = features.open_features(features_root(params_file), card["backbone"], test, stop=n)
-    x = model_inputs(backbone, cached).numpy()
+    x = features.inputs_from_cached(backbone, cached)
     truth = test.theta[:n]
     samples, lp, lp_truth = posterior_draws(posterior, x, truth, ev.samples, seeding.derive_seed(params.seed, model_id))
 
@@ -134,11 +134,9 @@ def log_to_mlflow(base: Path, experiment: str, results: list[dict], out: Path) -
     if exp is None:
         return
     for r in results:
-        runs = client.search_runs([exp.experiment_id], f"tags.`pidc.model` = '{r['model']}'",
-                                  order_by=["attributes.start_time DESC"], max_results=1)
-        if not runs:
+        run_id = newest_model_run(client, exp.experiment_id, r["model"])
+        if run_id is None:
             continue
-        run_id = runs[0].info.run_id
         for k, v in r["metrics"].items():
             client.log_metric(run_id, f"task1.{k}", float(v))
         for f in sorted((out / "plots" / r["model"]).glob("*.png")):

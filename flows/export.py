@@ -47,12 +47,9 @@ def registered_name(params: Params, model_id: str) -> str:
     return f"{params.export.registered_prefix}{model_id}"
 
 
-def _model_run(client: mlflow.MlflowClient, experiment: str, model_id: str) -> str | None:
-    """The newest MLflow run of ``model_id`` (tag ``pidc.model``), or None."""
-    exp = client.get_experiment_by_name(experiment)
-    if exp is None:
-        return None
-    runs = client.search_runs([exp.experiment_id], f"tags.`pidc.model` = '{model_id}'",
+def newest_model_run(client: mlflow.MlflowClient, experiment_id: str, model_id: str) -> str | None:
+    """The id of the newest MLflow run of ``model_id`` (tag ``pidc.model``) in the experiment, or None."""
+    runs = client.search_runs([experiment_id], f"tags.`pidc.model` = '{model_id}'",
                               order_by=["attributes.start_time DESC"], max_results=1)
     return runs[0].info.run_id if runs else None
 
@@ -72,19 +69,19 @@ def register(folder: Path, params: Params, base: Path, model_id: str) -> dict[st
     card = json.loads((folder / "card.json").read_text())
     mlflow.set_tracking_uri(tracking_uri(base))
     client = mlflow.MlflowClient()
-    run_id = _model_run(client, params.train.experiment, model_id)
+    exp = client.get_experiment_by_name(params.train.experiment)
+    experiment_id = exp.experiment_id if exp else client.create_experiment(params.train.experiment)
+    run_id = newest_model_run(client, experiment_id, model_id)
     name = registered_name(params, model_id)
     extra = sorted(str(p) for p in folder.iterdir() if p.is_file())
     requirements = [f"onnx=={onnx.__version__}", f"onnxruntime=={onnxruntime.__version__}", "numpy"]
     metrics = {k: float(v) for k, v in (card.get("metrics") or {}).items() if isinstance(v, (int, float))}
-    exp = client.get_experiment_by_name(params.train.experiment)
-    experiment_id = exp.experiment_id if exp else client.create_experiment(params.train.experiment)
     with mlflow.start_run(run_id=run_id, experiment_id=None if run_id else experiment_id,
                           run_name=None if run_id else f"export-{model_id}"):
         info = mlflow.onnx.log_model(
             onnx.load(str(folder / "density.onnx")), name="posterior", signature=_signature(card),
-            extra_files=extra, pip_requirements=requirements, onnx_execution_providers=["CPUExecutionProvider"], metadata={"pidc_card": card},
-            registered_model_name=name, await_registration_for=60,
+            extra_files=extra, pip_requirements=requirements, onnx_execution_providers=["CPUExecutionProvider"],
+            metadata={"pidc_card": card}, registered_model_name=name, await_registration_for=60,
         )
         mlflow.set_tags({"pidc.registered_model": name, "pidc.registry_folder": str(folder.relative_to(base))})
         run = mlflow.active_run().info.run_id

@@ -62,9 +62,7 @@ def build_sweep(params_file: Path) -> tuple[NoiseSweep, dict[str, np.ndarray], s
     cached = features.open_features(features_root(params_file), model.backbone.name, test)
 
     def contexts(idx: np.ndarray) -> np.ndarray:
-        rows = cached[idx]
-        x = model.backbone.preprocess(rows).numpy() if model.backbone.trainable else np.asarray(rows, np.float32)
-        return model.posterior.context(x)
+        return model.posterior.context(features.inputs_from_cached(model.backbone, cached[idx]))
 
     fresh = [contexts(pools[s]) for s in t.sources] if t.fresh_targets else None
     sweep = NoiseSweep(model.posterior.on_context(), contexts(members["b0"]), [contexts(members[s]) for s in t.sources],

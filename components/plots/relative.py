@@ -9,37 +9,11 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
+from components.diagnostics import roc_curve
 from components.plots.canvas import new_figure
 from components.plots.checks import as_named_arrays
 
 __all__ = ["roc_curve", "boxplots_by_level", "roc_curves"]
-
-
-def roc_curve(negatives: object, positives: object) -> tuple[np.ndarray, np.ndarray, float]:
-    """ROC of the decision "positive when score ≥ s" swept over every threshold s.
-
-    Arguments:
-        negatives: ``(m,)`` scores of negative cases (Task III: δ for targets in the ODD, η = 0).
-        positives: ``(p,)`` scores of positive cases (δ for targets out of the ODD, η > 0).
-
-    Returns:
-        ``(fpr, tpr, auc)``: false- and true-positive rates from (0, 0) to (1, 1) (one point per distinct score,
-        ties moving both rates at once), and the area under the curve (trapezoids), which equals the
-        Mann–Whitney probability P(score⁺ > score⁻) + ½ P(score⁺ = score⁻).
-    """
-    neg = as_named_arrays({"negatives": negatives}, "scores")["negatives"]
-    pos = as_named_arrays({"positives": positives}, "scores")["positives"]
-    scores = np.concatenate([pos, neg])
-    is_pos = np.concatenate([np.ones(pos.size), np.zeros(neg.size)])
-    order = np.argsort(-scores, kind="mergesort")
-    scores, is_pos = scores[order], is_pos[order]
-    last_of_tie = np.r_[np.nonzero(np.diff(scores))[0], scores.size - 1]
-    tp = np.cumsum(is_pos)[last_of_tie]
-    fp = np.cumsum(1 - is_pos)[last_of_tie]
-    tpr = np.r_[0.0, tp / pos.size]
-    fpr = np.r_[0.0, fp / neg.size]
-    auc = float(np.sum(np.diff(fpr) * (tpr[1:] + tpr[:-1]) / 2))
-    return fpr, tpr, auc
 
 
 def _level_label(level: object) -> str:

@@ -27,7 +27,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from components import seeding  # noqa: E402
-from components.backbones import EMBEDDED, PRETRAINED, get_backbone  # noqa: E402
+from components.features.backbones import EMBEDDED, PRETRAINED, get_backbone  # noqa: E402
 from machine import machine_info  # benchmarks/machine.py (the script's folder is on sys.path)  # noqa: E402
 
 

@@ -26,8 +26,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from components import seeding  # noqa: E402
-from components.domain import Domain, mixture_of  # noqa: E402
-from components.relative import SimplexLeastSquares, relate  # noqa: E402
+from components.domains.absolute import Domain, mixture_of  # noqa: E402
+from components.domains.relative import SimplexLeastSquares, relate  # noqa: E402
 
 
 class GaussianPosterior:

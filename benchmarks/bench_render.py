@@ -21,8 +21,8 @@ import time
 import cv2
 import numpy as np
 
-from components.simulator import ProceduralSimulator
-from components.weather import Box, sample_azimuth, weather_from_theta
+from components.simulate import ProceduralSimulator
+from components.core.weather import Box, sample_azimuth, weather_from_theta
 
 
 def _weathers(n: int, seed: int) -> list[dict[str, float]]:

@@ -33,9 +33,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from components import seeding  # noqa: E402
-from components.export import EXPORTERS, export_posterior  # noqa: E402
+from components.export.onnx import EXPORTERS, export_posterior  # noqa: E402
 from components.posterior.store import load_npe  # noqa: E402
-from components.runtime import OnnxPosterior  # noqa: E402
+from components.export.runtime import OnnxPosterior  # noqa: E402
 from machine import machine_info  # benchmarks/machine.py (the script's folder is on sys.path)  # noqa: E402
 
 

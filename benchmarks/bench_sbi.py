@@ -45,7 +45,7 @@ Unavoidable differences (all are sbi's defaults, what a user of sbi gets):
 * optimiser: pidc AdamW (weight decay 1e-4) with a cosine schedule over ``--epochs`` (its pipeline
   defaults, ``params.yaml`` ``train``); sbi Adam at a constant learning rate;
 * sbi's trainer draws its train/val split, shuffling and initial weights from torch's global RNG: the script
-  seeds it (from ``components.seeding``) inside ``torch.random.fork_rng``. sbi's TensorBoard logging is
+  seeds it (from ``components.core.seeding``) inside ``torch.random.fork_rng``. sbi's TensorBoard logging is
   replaced by an in-memory tracker (sbi's ``Tracker`` protocol) so that no ``sbi-logs/`` folder is written.
 
 Set-up (sbi lives in its own environment, never in ``.venv``; the torch pin keeps pip from fetching a CUDA
@@ -89,7 +89,11 @@ from torch import Tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from components import config, dataset, features, seeding, weather  # noqa: E402
+from components.core import config
+from components.simulate import dataset
+from components.features import cache as features
+from components.core import seeding
+from components import weather  # noqa: E402
 from components.posterior import NPE, FlowConfig, TrainingConfig, npe_loss, train  # noqa: E402
 
 SETUP_HINT = (

@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT))
 
 import yaml  # noqa: E402
 
-from components.config import load_params  # noqa: E402
+from components.core.config import load_params  # noqa: E402
 from flows.task3 import build_sweep  # noqa: E402
 from machine import machine_info  # noqa: E402
 

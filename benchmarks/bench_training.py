@@ -16,7 +16,8 @@ import time
 
 import torch
 
-from components import seeding, weather
+from components.core import seeding
+from components.core import weather
 from components.posterior.loss import npe_loss
 from components.posterior.model import NPE, FlowConfig
 

@@ -20,12 +20,18 @@ import numpy as np
 from prefect import flow, get_run_logger, task
 from tqdm.auto import tqdm
 
-from components import dataset, diagnostics, features, plots, ppc, seeding, weather
-from components.backbones import get_backbone
-from components.config import PROJECT_ROOT, Params, load_params
-from components.files import atomic_write_bytes
-from components.runtime import OnnxPosterior
-from components.simulator.base import make_simulator
+from components.simulate import dataset
+from components.evaluate import diagnostics
+from components.features import cache as features
+from components import plots
+from components.evaluate import ppc
+from components.core import seeding
+from components.core import weather
+from components.features.backbones import get_backbone
+from components.core.config import PROJECT_ROOT, Params, load_params
+from components.core.files import atomic_write_bytes
+from components.export.runtime import OnnxPosterior
+from components.simulate.base import make_simulator
 from flows.export import newest_model_run, registry_root, set_champion
 from flows.features import features_root
 from flows.generate import data_root

@@ -1,7 +1,7 @@
 """The ``export@<backbone>-<size>`` stage: one trained model → ``registry/<model>/`` and the MLflow Model Registry.
 
 ``python -m flows.export --model cues-1000 [--params params.yaml]``. The model's graphs are exported to ONNX
-(:func:`components.export.export_posterior`, checked against torch in onnxruntime) with a model card (backbone,
+(:func:`components.export.onnx.export_posterior`, checked against torch in onnxruntime) with a model card (backbone,
 training size, θ order, units and bijection, input spec, training metrics, data hash, git commit, opset,
 onnxruntime version). The whole-density graph ``density.onnx`` is logged as an MLflow model (ONNX flavor, the other
 graphs and the card as its extra files) in the model's training run and registered as ``<prefix><model id>``,
@@ -28,11 +28,11 @@ from mlflow.models import ModelSignature
 from mlflow.types import Schema, TensorSpec
 from prefect import flow, get_run_logger
 
-from components.backbones import get_backbone
-from components.config import PROJECT_ROOT, Params, load_params
-from components.export import export_posterior
-from components.files import atomic_write_bytes, sha256_file
-from components.registry import CHAMPION_POINTER
+from components.features.backbones import get_backbone
+from components.core.config import PROJECT_ROOT, Params, load_params
+from components.export.onnx import export_posterior
+from components.core.files import atomic_write_bytes, sha256_file
+from components.export.lookup import CHAMPION_POINTER
 from components.posterior.store import load_npe
 from flows.train import git_commit, tracking_uri
 
@@ -167,8 +167,8 @@ def set_champion(params: Params, base: Path, metrics: dict[str, dict[str, float]
 
 def load_registered_model(uri: str, base: Path | None = None):
     """Download an MLflow registered model (e.g. ``models:/pidc-cnn-3000@champion``) and open it with the torch-free
-    runtime: returns :class:`components.runtime.OnnxPosterior` (from the model's extra files)."""
-    from components.runtime import OnnxPosterior
+    runtime: returns :class:`components.export.runtime.OnnxPosterior` (from the model's extra files)."""
+    from components.export.runtime import OnnxPosterior
 
     if base is not None:
         mlflow.set_tracking_uri(tracking_uri(base))

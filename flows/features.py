@@ -13,16 +13,18 @@ from pathlib import Path
 
 from prefect import flow, get_run_logger, task
 
-from components import dataset, features, seeding
-from components.backbones import Backbone, get_backbone
-from components.config import PROJECT_ROOT, Params, load_params
+from components.simulate import dataset
+from components.features import cache as features
+from components.core import seeding
+from components.features.backbones import Backbone, get_backbone
+from components.core.config import PROJECT_ROOT, Params, load_params
 from flows.generate import data_root
 from flows.runtime import share_api_with_workers, task_runner, wait_with_progress
 
 
 def backbone_options(name: str, params: Params, params_path: Path) -> dict:
     """The options of backbone ``name`` from the params: pretrained weights folder, CNN seed."""
-    from components.backbones import PRETRAINED
+    from components.features.backbones import PRETRAINED
 
     if name in PRETRAINED:
         opts: dict = {}

@@ -12,9 +12,10 @@ from pathlib import Path
 
 from prefect import flow, get_run_logger, task
 
-from components import dataset, seeding
-from components.config import Params, SimulatorConfig, load_params
-from components.simulator.base import make_simulator
+from components.simulate import dataset
+from components.core import seeding
+from components.core.config import Params, SimulatorConfig, load_params
+from components.simulate.base import make_simulator
 from flows.runtime import params_from_argv, share_api_with_workers, task_runner, wait_with_progress
 
 
@@ -93,7 +94,7 @@ def generate(params_path: str) -> dict:
         images_per_scene=params.data.images_per_scene,
     )
 
-    from components.simulator.contact_sheet import contact_sheet, save_png
+    from components.simulate.contact_sheet import contact_sheet, save_png
 
     sheet_seeds = [seeding.derive_seed(params.seed, "contact_sheet", j) for j in range(params.contact_sheet.scenes)]
     sheet = contact_sheet(simulator, sheet_seeds, params.contact_sheet.steps)

@@ -11,7 +11,7 @@ from prefect.futures import PrefectFuture, as_completed
 from prefect.task_runners import ProcessPoolTaskRunner, TaskRunner, ThreadPoolTaskRunner
 from tqdm.auto import tqdm
 
-from components.config import PROJECT_ROOT, Params, RunnerConfig, load_params
+from components.core.config import PROJECT_ROOT, Params, RunnerConfig, load_params
 
 __all__ = ["task_runner", "params_from_argv", "wait_with_progress", "share_api_with_workers", "PROJECT_ROOT"]
 

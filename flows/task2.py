@@ -23,13 +23,16 @@ import numpy as np
 from prefect import flow, get_run_logger, task
 from tqdm.auto import tqdm
 
-from components import diagnostics, plots, seeding, weather
-from components.config import Params, load_params
-from components.domain import Domain
-from components.files import atomic_write_bytes
-from components.registry import load_registered
-from components.scenarios import GaussianMixtureWeather
-from components.simulator.base import make_simulator
+from components.evaluate import diagnostics
+from components import plots
+from components.core import seeding
+from components.core import weather
+from components.core.config import Params, load_params
+from components.domains.absolute import Domain
+from components.core.files import atomic_write_bytes
+from components.export.lookup import load_registered
+from components.domains.scenarios import GaussianMixtureWeather
+from components.simulate.base import make_simulator
 from flows.export import registry_root
 from flows.runtime import params_from_argv
 

@@ -2,7 +2,7 @@
 
 ``python -m flows.task3 [--params params.yaml]``. Bags b0 (out of the ODD) and the sources b1, b2, … of test images
 whose weather lies in the sub-boxes of ``task3.bags``; for each η in ``task3.etas``, ``task3.repetitions`` targets
-(1 − η)·Σₖ λₖ bₖ + η·b0 related to the sources with n_W = ``task3.n_points`` (:mod:`components.sweep`); the
+(1 − η)·Σₖ λₖ bₖ + η·b0 related to the sources with n_W = ``task3.n_points`` (:mod:`components.domains.sweep`); the
 out-of-ODD decision on the relative gap calibrated on ``task3.calibration_targets`` in-ODD targets for the
 false-alarm rate ``task3.false_alarm_rate``. With ``task3.fresh_targets`` (beyond the paper) a second sweep uses
 fresh targets — their in-ODD part other test images of the sources' sub-boxes — on which the ODD decision is
@@ -23,12 +23,14 @@ from prefect import flow, get_run_logger, task
 from prefect.cache_policies import NO_CACHE
 from tqdm.auto import tqdm
 
-from components import dataset, features, plots
-from components.config import Params, load_params
-from components.files import atomic_write_bytes
-from components.registry import load_registered
-from components.scenarios import in_sub_box
-from components.sweep import NoiseSweep, experiments_by_eta, summarize
+from components.simulate import dataset
+from components.features import cache as features
+from components import plots
+from components.core.config import Params, load_params
+from components.core.files import atomic_write_bytes
+from components.export.lookup import load_registered
+from components.domains.scenarios import in_sub_box
+from components.domains.sweep import NoiseSweep, experiments_by_eta, summarize
 from flows.export import registry_root
 from flows.features import features_root
 from flows.generate import data_root

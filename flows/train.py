@@ -23,10 +23,12 @@ import numpy as np
 import torch
 from prefect import flow, get_run_logger
 
-from components import dataset, features, seeding
-from components.backbones import get_backbone
-from components.config import PROJECT_ROOT, Params, VariantConfig, load_params
-from components.files import atomic_write_bytes
+from components.simulate import dataset
+from components.features import cache as features
+from components.core import seeding
+from components.features.backbones import get_backbone
+from components.core.config import PROJECT_ROOT, Params, VariantConfig, load_params
+from components.core.files import atomic_write_bytes
 from components.posterior import NPE, FlowConfig, TrainingConfig, train
 from components.posterior.store import save_npe
 from flows.features import backbone_options, features_root

@@ -18,7 +18,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import pytest  # noqa: E402
 import yaml  # noqa: E402
 
-from components.config import PROJECT_ROOT  # noqa: E402
+from components.core.config import PROJECT_ROOT  # noqa: E402
 
 
 @pytest.fixture(scope="session")

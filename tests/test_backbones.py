@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from components import seeding
-from components.backbones import EMBEDDED, PRETRAINED, Backbone, available, get_backbone
-from components.backbones.cues import FEATURE_NAMES
-from components.simulator import ProceduralSimulator
+from components.core import seeding
+from components.features.backbones import EMBEDDED, PRETRAINED, Backbone, available, get_backbone
+from components.features.backbones.cues import FEATURE_NAMES
+from components.simulate import ProceduralSimulator
 
 SEED = 2026
 CLEAR = dict(cloudiness=20.0, fog_density=0.0, precipitation=0.0, sun_altitude_angle=45.0,

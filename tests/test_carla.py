@@ -17,10 +17,10 @@ import carla  # the optional `carla` extra is part of the development environmen
 import numpy as np
 import pytest
 
-from components import seeding
-from components.config import CarlaConfig, SimulatorConfig
-from components.simulator.base import Simulator
-from components.simulator.carla import (
+from components.core import seeding
+from components.core.config import CarlaConfig, SimulatorConfig
+from components.simulate.base import Simulator
+from components.simulate.carla import (
     CarlaConnectionError,
     CarlaSimulator,
     asynchronous_settings,
@@ -31,7 +31,7 @@ from components.simulator.carla import (
     synchronous_settings,
     weather_parameters,
 )
-from components.weather import ALL_NAMES, FIXED, NUISANCE, PARAMETERS, PREDICTED
+from components.core.weather import ALL_NAMES, FIXED, NUISANCE, PARAMETERS, PREDICTED
 
 TIMEOUT_S = 1.5
 #: wall-clock slack allowed on top of the timeout (a loaded 2-core machine)

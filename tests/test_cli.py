@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from components.cli import PRESETS, main
-from components import weather
+from components.cli.main import PRESETS, main
+from components.core import weather
 
 
 def test_presets_are_valid_weathers():
@@ -23,7 +23,7 @@ def test_render_writes_the_simulators_image(tmp_path):
     assert main(["render", "--preset", "foggy_morning", "--set", "fog_density=70", "--seed", "3",
                  "--height", "48", "--width", "64", "-o", str(out)]) == 0
     png = cv2.cvtColor(cv2.imread(str(out), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-    from components.simulator import ProceduralSimulator
+    from components.simulate import ProceduralSimulator
 
     expected = ProceduralSimulator(48, 64).render(PRESETS["foggy_morning"] | {"fog_density": 70}, 3)
     np.testing.assert_array_equal(png, expected)
@@ -53,6 +53,6 @@ def test_bad_input_is_one_clear_line(args, message, capsys, tmp_path):
 
 
 def test_console_script_lists_weather():
-    r = subprocess.run([sys.executable, "-m", "components.cli", "weather"], capture_output=True, text=True, timeout=60)
+    r = subprocess.run([sys.executable, "-m", "components.cli.main", "weather"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0
     assert "sun_altitude_angle" in r.stdout and "[-90, 90] deg" in r.stdout and "clear_noon" in r.stdout

@@ -3,7 +3,7 @@
 The registry holds one small NPE on the 80 physical cue features (`cues`), trained for a few epochs on images of the
 procedural simulator and exported with the fast torchscript exporter; the champion pointer names it. Folders of images
 are rendered at known weathers: two source domains (clear noon, overcast rain), an in-ODD target mixing fresh images of
-both, and an out-of-ODD target (foggy night). Commands run in-process through `components.cli.main`, and once through
+both, and an out-of-ODD target (foggy night). Commands run in-process through `components.cli.main.main`, and once through
 the installed `pidc` console script.
 """
 
@@ -20,10 +20,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from components import seeding, weather
-from components.cli import main
-from components.registry import CHAMPION_POINTER
-from components.summary import hdi
+from components.core import seeding
+from components.core import weather
+from components.cli.main import main
+from components.export.lookup import CHAMPION_POINTER
+from components.evaluate.summary import hdi
 
 BOX = weather.Box.full()
 NAMES = BOX.names
@@ -39,7 +40,7 @@ NIGHT = ([0, 80, 0, -90, 0, 0], [20, 100, 10, -40, 30, 10])
 
 def render_folder(folder: Path, box: tuple[list[float], list[float]], n: int, seed: int, prefix: str = "") -> Path:
     """n PNGs of 32×32 at weathers uniform in ``box`` (distinct scenes)."""
-    from components.simulator import ProceduralSimulator
+    from components.simulate import ProceduralSimulator
 
     sim = ProceduralSimulator(32, 32)
     folder.mkdir(parents=True, exist_ok=True)
@@ -54,11 +55,11 @@ def render_folder(folder: Path, box: tuple[list[float], list[float]], n: int, se
 @pytest.fixture(scope="module")
 def world(tmp_path_factory) -> dict[str, Path]:
     """A registry with model ``cues-tiny`` (the champion) and folders of images."""
-    from components.backbones import get_backbone
-    from components.export import export_posterior
-    from components.features import posterior_inputs
+    from components.features.backbones import get_backbone
+    from components.export.onnx import export_posterior
+    from components.features.cache import posterior_inputs
     from components.posterior import NPE, FlowConfig, TrainingConfig, train
-    from components.simulator import ProceduralSimulator
+    from components.simulate import ProceduralSimulator
 
     root = tmp_path_factory.mktemp("cli-registry")
     r = seeding.rng(0, "test", "cli-registry")

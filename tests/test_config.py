@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import yaml
 
-from components.config import PROJECT_ROOT, ConfigError, load_params, parse_params
-from components import seeding
+from components.core.config import PROJECT_ROOT, ConfigError, load_params, parse_params
+from components.core import seeding
 
 
 @pytest.mark.parametrize("path", [PROJECT_ROOT / "params.yaml", *sorted((PROJECT_ROOT / "profiles").glob("*.yaml"))])

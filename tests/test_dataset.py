@@ -7,8 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from components import dataset, weather
-from components.simulator import ProceduralSimulator
+from components.simulate import dataset
+from components.core import weather
+from components.simulate import ProceduralSimulator
 
 BOX = weather.Box.full()
 

@@ -19,7 +19,7 @@ import psutil
 import pytest
 import yaml
 
-from components.config import PROJECT_ROOT
+from components.core.config import PROJECT_ROOT
 from tests.conftest import copy_project
 
 FINAL = {"COMPLETED", "FAILED", "CRASHED", "CANCELLED"}

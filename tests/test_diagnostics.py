@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from components import seeding
-from components.diagnostics import (
+from components.core import seeding
+from components.evaluate.diagnostics import (
     DEFAULT_LEVELS,
     calibration_error,
     coverage_error,
@@ -102,7 +102,7 @@ def test_bad_inputs_name_the_problem() -> None:
 def test_energy_distance_matches_scipy_in_one_dimension_and_separates_distributions():
     from scipy.stats import energy_distance as scipy_energy
 
-    from components.diagnostics import energy_distance
+    from components.evaluate.diagnostics import energy_distance
 
     r = np.random.default_rng(0)
     a, b = r.normal(0, 1, (400, 1)), r.normal(0.5, 2, (300, 1))
@@ -125,7 +125,7 @@ def test_hdr_mass_is_the_level_when_the_truth_is_the_estimate():
     """P = p̂ = N(0, I₃): the share of P's draws inside p̂'s l-HDR is l (binomial tolerance); a shifted P has less."""
     from scipy.stats import multivariate_normal
 
-    from components.diagnostics import hdr_mass
+    from components.evaluate.diagnostics import hdr_mass
 
     r = np.random.default_rng(1)
     dist = multivariate_normal(np.zeros(3), np.eye(3))

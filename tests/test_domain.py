@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from components.domain import Domain, ExponentialFilter, Posterior, mixture_of, normalized_weights
-from components.seeding import rng
+from components.domains.absolute import Domain, ExponentialFilter, Posterior, mixture_of, normalized_weights
+from components.core.seeding import rng
 
 
 class GaussianPosterior:

@@ -19,13 +19,14 @@ import onnx
 import pytest
 import torch
 
-from components import seeding, weather
-from components.backbones import get_backbone
-from components.domain import Domain, Posterior
-from components.export import OPSET, export_posterior
+from components.core import seeding
+from components.core import weather
+from components.features.backbones import get_backbone
+from components.domains.absolute import Domain, Posterior
+from components.export.onnx import OPSET, export_posterior
 from components.posterior.mixture import EqualMixture, draw_flow
 from components.posterior.model import NPE, FlowConfig
-from components.runtime import OnnxPosterior
+from components.export.runtime import OnnxPosterior
 
 ROOT = Path(__file__).resolve().parents[1]
 BOX = weather.Box.full()
@@ -261,7 +262,7 @@ _NO_TORCH = """
 import sys, json
 sys.modules["torch"] = None  # importing torch now fails
 import numpy as np
-from components.runtime import OnnxPosterior
+from components.export.runtime import OnnxPosterior
 posterior = OnnxPosterior.load(sys.argv[1], intra_op_num_threads=2)
 x = np.load(sys.argv[2])
 theta = np.load(sys.argv[3])

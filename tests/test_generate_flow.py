@@ -8,8 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from components import dataset
-from components.config import load_params
+from components.simulate import dataset
+from components.core.config import load_params
 from tests.conftest import FAST_TRAINING, copy_project, run_in, write_params
 
 
@@ -53,7 +53,7 @@ def test_every_task_runner_gives_the_same_data(tmp_path, prefect_harness, kind):
 
 
 def test_flow_rejects_bad_params_before_work(tmp_path, prefect_harness):
-    from components.config import ConfigError
+    from components.core.config import ConfigError
     from flows.generate import generate
 
     params = write_params(tmp_path, **{"data.splits": {"train": 24, "val": -1, "test": 8}})

@@ -1,6 +1,6 @@
 """Image files → uint8 RGB: conversions with notes, and one clear line naming the file for every unusable file.
 
-Every file is written by the test (Pillow, OpenCV, or raw bytes), then read back with components.images.
+Every file is written by the test (Pillow, OpenCV, or raw bytes), then read back with components.core.images.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from components.images import ImageError, group_by_size, iter_images, list_images, read_image
-from components.seeding import rng
+from components.core.images import ImageError, group_by_size, iter_images, list_images, read_image
+from components.core.seeding import rng
 
 
 def rgb(h: int = 40, w: int = 40, seed: int = 0) -> np.ndarray:

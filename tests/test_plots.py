@@ -12,8 +12,8 @@ import pytest
 from matplotlib.image import imread
 
 from components import plots
-from components.seeding import rng
-from components.weather import Box
+from components.core.seeding import rng
+from components.core.weather import Box
 
 LEVELS = (0.6827, 0.9545, 0.9973)
 LOG_2PI = math.log(2 * math.pi)
@@ -276,7 +276,7 @@ _LP = -np.arange(500, dtype=float) / 100
         (lambda: plots.marginal_histograms(_THETA, _LP[:-1]), ValueError, r"log_prob must have shape \(500,\)"),
         (lambda: plots.marginal_histograms(_THETA, _LP, truth=np.zeros(5)), ValueError, r"truth must have shape \(6,\)"),
         (lambda: plots.marginal_histograms(_THETA, _LP, level=1.0), ValueError, r"strictly inside \(0, 1\)"),
-        (lambda: plots.marginal_histograms(_THETA, _LP, box=(0, 1)), TypeError, "components.weather.Box"),
+        (lambda: plots.marginal_histograms(_THETA, _LP, box=(0, 1)), TypeError, "components.core.weather.Box"),
         (lambda: plots.corner_plot(_THETA, _LP, levels=(0.5, 1.2)), ValueError, r"strictly inside \(0, 1\)"),
         (lambda: plots.corner_plot(_THETA[:100], _LP[:100], zoom=True), ValueError, "needs at least 371 samples"),
         (lambda: plots.corner_plot(_THETA, reference_samples=np.zeros((4, 3))), ValueError, "reference_samples must have shape"),

@@ -13,7 +13,8 @@ import pytest
 import torch
 from torch import nn
 
-from components import seeding, weather
+from components.core import seeding
+from components.core import weather
 from components.posterior.bijection import IntervalBox, ScaledLogit, Z_MAX, as_interval_box
 from components.posterior.checkpoint import load_checkpoint
 from components.posterior.loss import balance_penalty, npe_loss

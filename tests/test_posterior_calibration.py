@@ -22,8 +22,8 @@ import pytest
 import torch
 from scipy import stats
 
-from components import seeding
-from components.diagnostics import calibration_error, coverage_error, expected_coverage, hpd_credibility
+from components.core import seeding
+from components.evaluate.diagnostics import calibration_error, coverage_error, expected_coverage, hpd_credibility
 from components.posterior.bijection import IntervalBox
 from components.posterior.model import NPE, FlowConfig
 from components.posterior.train import TrainingConfig, train

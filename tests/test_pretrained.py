@@ -12,8 +12,8 @@ import pytest
 import torch
 import transformers
 
-from components import seeding
-from components.backbones import PRETRAINED, MissingWeightsError, get_backbone
+from components.core import seeding
+from components.features.backbones import PRETRAINED, MissingWeightsError, get_backbone
 
 SEED = 2026
 DIMS = {"resnet50": 16, "dinov2": 32, "clip": 32}
@@ -175,7 +175,7 @@ def test_bad_images_are_rejected(weights: Path) -> None:
 
 
 def test_hub_offline_env_is_read_at_call_time(monkeypatch: pytest.MonkeyPatch) -> None:
-    from components.backbones.weights import hub_offline
+    from components.features.backbones.weights import hub_offline
 
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     assert hub_offline()

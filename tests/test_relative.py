@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from components.domain import Domain, mixture_of
-from components.relative import (
+from components.domains.absolute import Domain, mixture_of
+from components.domains.relative import (
     OddDetector,
     Relation,
     SimplexLeastSquares,
@@ -23,7 +23,7 @@ from components.relative import (
     relate,
     simplex_distance,
 )
-from components.seeding import rng
+from components.core.seeding import rng
 from tests.test_domain import GaussianPosterior
 
 LAMBDA = np.array([0.2, 0.3, 0.5])
@@ -341,7 +341,7 @@ def test_calibration_errors(world):
     post, sources = world
     with pytest.raises(ValueError, match="at least one source"):
         calibrate_on_sources([], 100)
-    with pytest.raises(TypeError, match=r"sources\[1\] must be a components.domain.Domain"):
+    with pytest.raises(TypeError, match=r"sources\[1\] must be a components.domains.absolute.Domain"):
         calibrate_on_sources([sources[0], NaNDensity()], 100)
     with pytest.raises(ValueError, match=r"sources\[1\] uses another posterior"):
         calibrate_on_sources([sources[0], Domain(GaussianPosterior(0.5), sources[1].bag)], 100)

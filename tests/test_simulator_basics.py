@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-from components.simulator import ProceduralSimulator, Simulator
-from components.simulator.calibration import CALIBRATION, calibration_hash, calibration_rows
-from components.simulator.contact_sheet import contact_sheet, save_png
-from components.weather import PREDICTED
+from components.simulate import ProceduralSimulator, Simulator
+from components.simulate.procedural.calibration import CALIBRATION, calibration_hash, calibration_rows
+from components.simulate.contact_sheet import contact_sheet, save_png
+from components.core.weather import PREDICTED
 
 DAY = {
     "cloudiness": 30.0,

@@ -14,11 +14,11 @@ import math
 import numpy as np
 import pytest
 
-from components.simulator import ProceduralSimulator
-from components.simulator.layout import ROAD, SKY
-from components.simulator.rain import streak_alpha
-from components.simulator.shadows import sun_visibility
-from components.simulator.sky import sun_sky
+from components.simulate import ProceduralSimulator
+from components.simulate.procedural.layout import ROAD, SKY
+from components.simulate.procedural.rain import streak_alpha
+from components.simulate.procedural.shadows import sun_visibility
+from components.simulate.procedural.sky import sun_sky
 
 BASE = {
     "cloudiness": 0.0,
@@ -170,8 +170,8 @@ def test_sun_azimuth_moves_shadows_which_fade_under_clouds_and_fog(sim: Procedur
     head = sc.layout.heading_deg
     # sun from the right side of the road (relative azimuth 90°), then from the left
     w = {**BASE, "sun_altitude_angle": 55.0, "sun_azimuth_angle": (head + 90.0) % 360}
-    vis_a = sun_visibility(sc, sun_sky(55.0, 90.0, 0.0, 0.0).sun_dir)
-    vis_b = sun_visibility(sc, sun_sky(55.0, 270.0, 0.0, 0.0).sun_dir)
+    vis_a = sun_visibility(sc.shadow, sc.height * sc.width, sun_sky(55.0, 90.0, 0.0, 0.0).sun_dir)
+    vis_b = sun_visibility(sc.shadow, sc.height * sc.width, sun_sky(55.0, 270.0, 0.0, 0.0).sun_dir)
     ground = sc.shadow.ground_pixels
     assert np.mean(vis_a[ground] != vis_b[ground]) > 0.05
     img_a = sim.render(w, seed)
@@ -189,6 +189,6 @@ def test_sun_azimuth_moves_shadows_which_fade_under_clouds_and_fog(sim: Procedur
     assert contrast(cloudiness=100.0) < 1.25
     assert contrast(fog_density=100.0) < 1.25
     # longer shadows at low sun
-    low = sun_visibility(sc, sun_sky(20.0, 90.0, 0.0, 0.0).sun_dir)
+    low = sun_visibility(sc.shadow, sc.height * sc.width, sun_sky(20.0, 90.0, 0.0, 0.0).sun_dir)
     assert (low[ground] == 0).mean() > (vis_a[ground] == 0).mean()
     assert not np.isin(sc.material[ground], (SKY,)).any()

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from components import weather
-from components.seeding import rng
-from components.summary import HDI_MASS, format_summary, hdi, summarize
+from components.core import weather
+from components.core.seeding import rng
+from components.evaluate.summary import HDI_MASS, format_summary, hdi, summarize
 
 
 def test_hdi_is_the_shortest_window_of_the_sorted_draws():

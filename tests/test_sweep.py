@@ -1,16 +1,16 @@
-"""Task III's sweep (components.sweep) on a closed-form posterior: weights recovered in the ODD, detection outside,
-the calibrated false-alarm rate, determinism; and the known-distribution helpers of components.scenarios."""
+"""Task III's sweep (components.domains.sweep) on a closed-form posterior: weights recovered in the ODD, detection outside,
+the calibrated false-alarm rate, determinism; and the known-distribution helpers of components.domains.scenarios."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from components import weather
-from components.relative import OddDetector
-from components.scenarios import GaussianMixtureWeather, in_sub_box
-from components.seeding import rng
-from components.sweep import NoiseSweep, experiments_by_eta, summarize
+from components.core import weather
+from components.domains.relative import OddDetector
+from components.domains.scenarios import GaussianMixtureWeather, in_sub_box
+from components.core.seeding import rng
+from components.domains.sweep import NoiseSweep, experiments_by_eta, summarize
 from tests.test_domain import GaussianPosterior
 from tests.test_relative import OUT_BOX, SOURCE_BOXES, uniform_in
 

@@ -82,7 +82,7 @@ def test_export_evaluate_champion(project, monkeypatch):
     import mlflow.pyfunc
     import yaml
 
-    from components.runtime import OnnxPosterior
+    from components.export.runtime import OnnxPosterior
     from flows.evaluate import evaluate
     from flows.export import export_model, load_registered_model
     from flows.train import train_model
@@ -167,8 +167,8 @@ def test_export_evaluate_champion(project, monkeypatch):
 
 
 def test_evaluate_refuses_a_model_with_another_theta_order(project, tmp_path):
-    from components import weather
-    from components.config import load_params
+    from components.core import weather
+    from components.core.config import load_params
     from flows.evaluate import check_model_matches_data
 
     folder, params = project

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from components import weather
+from components.core import weather
 
 
 def test_table_has_the_papers_13_parameters_in_order():

@@ -1,6 +1,6 @@
 """The figures of pidc as files readable offline (matplotlib, Agg canvas, no pyplot).
 
-Inputs are numpy arrays (θ in the order and physical units of :mod:`components.weather`); every plotting
+Inputs are numpy arrays (θ in the order and physical units of :mod:`components.core.weather`); every plotting
 function returns a :class:`matplotlib.figure.Figure`, written with :func:`save_figure` (atomic, closes it).
 
 * Task I: :func:`marginal_histograms` (1st analysis), :func:`corner_plot` (2nd), :func:`ppc_sheet` (3rd),

@@ -77,7 +77,7 @@ def coverage_plot(
 
     Arguments:
         curves: model name → ``(levels (L,), coverage (L,))``, both in [0, 1] (e.g. from
-            :func:`components.diagnostics.expected_coverage`); L may differ between models.
+            :func:`components.evaluate.diagnostics.expected_coverage`); L may differ between models.
 
     The diagonal c = l is calibration; above it a model is conservative (underconfident, its regions too
     wide), below it overconfident (too narrow). Both halves are shaded and labelled.

@@ -10,7 +10,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from components.weather import PREDICTED, Box
+from components.core.weather import PREDICTED, Box
 
 __all__ = [
     "N_THETA",
@@ -65,7 +65,7 @@ def as_box(box: Box | None) -> Box:
     if box is None:
         return Box.full()
     if not isinstance(box, Box):
-        raise TypeError(f"box must be a components.weather.Box or None, got {type(box).__name__}")
+        raise TypeError(f"box must be a components.core.weather.Box or None, got {type(box).__name__}")
     return box
 
 

@@ -23,7 +23,7 @@ from components.plots.canvas import new_figure
 from components.plots.checks import N_THETA, as_box, as_levels, as_log_prob, as_samples, as_truth
 from components.plots.hdr import grid_density, grid_hdr_thresholds, in_hdr
 from components.plots.labels import short_label
-from components.weather import Box
+from components.core.weather import Box
 
 __all__ = ["corner_ranges", "corner_plot", "corner_compare"]
 

@@ -1,8 +1,8 @@
-"""Axis labels of the weather parameters, with their physical units (from :mod:`components.weather`)."""
+"""Axis labels of the weather parameters, with their physical units (from :mod:`components.core.weather`)."""
 
 from __future__ import annotations
 
-from components.weather import PARAMETERS, PREDICTED, SHORT_NAMES
+from components.core.weather import PARAMETERS, PREDICTED, SHORT_NAMES
 
 __all__ = ["unit_symbol", "parameter_label", "short_label"]
 

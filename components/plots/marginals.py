@@ -10,7 +10,7 @@ from components.plots.canvas import new_figure
 from components.plots.checks import N_THETA, as_box, as_log_prob, as_samples, as_truth
 from components.plots.hdr import in_hdr
 from components.plots.labels import parameter_label, unit_symbol
-from components.weather import PREDICTED, Box
+from components.core.weather import PREDICTED, Box
 
 __all__ = ["marginal_hdr_histograms", "marginal_histograms"]
 

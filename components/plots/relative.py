@@ -9,7 +9,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
-from components.diagnostics import roc_curve
+from components.evaluate.diagnostics import roc_curve
 from components.plots.canvas import new_figure
 from components.plots.checks import as_named_arrays
 

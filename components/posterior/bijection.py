@@ -1,7 +1,7 @@
 """The scaled-logit bijection between a parameter box and ℝᵈ, in torch.
 
-This is the torch twin of :func:`components.weather.to_unbounded`, :func:`~components.weather.to_physical`
-and :func:`~components.weather.log_abs_det_jacobian`: the same formulas, the same :data:`~components.weather.EDGE_EPS`,
+This is the torch twin of :func:`components.core.weather.to_unbounded`, :func:`~components.core.weather.to_physical`
+and :func:`~components.core.weather.log_abs_det_jacobian`: the same formulas, the same :data:`~components.core.weather.EDGE_EPS`,
 so that in float64 both give the same numbers (to ~1e-12). Per parameter ``i``:
 
     u = (θ − low) / (high − low), clipped to [ε, 1 − ε]        (ε = EDGE_EPS)
@@ -11,7 +11,7 @@ so that in float64 both give the same numbers (to ~1e-12). Per parameter ``i``:
 
 so that densities convert as ``log q_θ(θ) = log q_z(z) − log|det ∂θ/∂z|``.
 
-:class:`components.weather.Box` serves boxes of any dimension ``d`` (θ ∈ ℝᵈ): the 6-D weather prior, and the
+:class:`components.core.weather.Box` serves boxes of any dimension ``d`` (θ ∈ ℝᵈ): the 6-D weather prior, and the
 1–2-D toys the posterior is tested on (``IntervalBox`` is the same class).
 """
 
@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from components import weather
+from components.core import weather
 
 __all__ = ["IntervalBox", "as_interval_box", "ScaledLogit", "Z_MAX"]
 
@@ -32,25 +32,25 @@ __all__ = ["IntervalBox", "as_interval_box", "ScaledLogit", "Z_MAX"]
 Z_MAX: float = math.log1p(-weather.EDGE_EPS) - math.log(weather.EDGE_EPS)
 
 
-#: The box of any dimension is :class:`components.weather.Box` (kept under this name for the posterior's API).
+#: The box of any dimension is :class:`components.core.weather.Box` (kept under this name for the posterior's API).
 IntervalBox = weather.Box
 
 
 def as_interval_box(box: weather.Box) -> weather.Box:
-    """Check that ``box`` is a :class:`components.weather.Box` (of any dimension); anything else is a ``TypeError``."""
+    """Check that ``box`` is a :class:`components.core.weather.Box` (of any dimension); anything else is a ``TypeError``."""
     if isinstance(box, weather.Box):
         return box
-    raise TypeError(f"box must be a components.weather.Box, got {type(box).__name__}")
+    raise TypeError(f"box must be a components.core.weather.Box, got {type(box).__name__}")
 
 
 class ScaledLogit(nn.Module):
-    """θ ∈ [low, high]ᵈ ↔ z ∈ ℝᵈ, the scaled logit of :mod:`components.weather`, as a torch module.
+    """θ ∈ [low, high]ᵈ ↔ z ∈ ℝᵈ, the scaled logit of :mod:`components.core.weather`, as a torch module.
 
     The box is stored as float64 buffers ``low`` and ``high`` (shape ``(d,)``); every method computes in the dtype
     of its input (pass float64 for the exact numbers of the numpy version).
 
     Arguments:
-        box: the prior box (:class:`components.weather.Box` or :class:`IntervalBox`).
+        box: the prior box (:class:`components.core.weather.Box` or :class:`IntervalBox`).
     """
 
     low: Tensor

@@ -26,7 +26,8 @@ import zuko
 from torch import Tensor, nn
 from torch.distributions import AffineTransform, Distribution
 
-from components import seeding, weather
+from components.core import seeding
+from components.core import weather
 from components.posterior.bijection import IntervalBox, ScaledLogit, Z_MAX, as_interval_box
 from components.posterior.mixture import EqualMixture, draw_flow, standard_normal
 
@@ -103,7 +104,7 @@ class NPE(nn.Module):
         embedding: a module mapping inputs ``(B, *input_shape)`` to contexts ``(B, features)``, trained with the
             flow; ``None`` = identity (cached, frozen features of size ``features``).
         features: the context size (after the embedding).
-        box: the prior box (:class:`components.weather.Box`, of any dimension d).
+        box: the prior box (:class:`components.core.weather.Box`, of any dimension d).
         config: the flow's hyper-parameters.
         input_shape: the shape of one input; defaults to ``(features,)`` without an embedding. Required with an
             embedding when ``config.standardize`` (the mean/std buffers have this shape: per-element standardization).
@@ -257,7 +258,7 @@ class NPE(nn.Module):
         return self.log_prob(theta, x)
 
     def flow(self, x: Tensor) -> Distribution:
-        """The z-space distribution q(z | x), batch shape ``(B,)``, event shape ``(d,)`` (z as in :mod:`components.weather`).
+        """The z-space distribution q(z | x), batch shape ``(B,)``, event shape ``(d,)`` (z as in :mod:`components.core.weather`).
 
         A zuko ``NormalizingFlow`` (its first transform is the fixed scaling by 1/:data:`Z_SCALE`), or an
         :class:`~components.posterior.mixture.EqualMixture` of them for an ensemble.

@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from components import weather
-from components.files import atomic_write_bytes
+from components.core import weather
+from components.core.files import atomic_write_bytes
 from components.posterior.model import NPE, FlowConfig
 
 __all__ = ["save_npe", "load_npe", "MODEL_FORMAT"]
@@ -64,7 +64,7 @@ def load_npe(path: str | Path) -> tuple[NPE, dict[str, Any]]:
     flow["hidden_features"] = tuple(flow["hidden_features"])
     embedding = None
     if header["trainable_backbone"]:
-        from components.backbones import get_backbone
+        from components.features.backbones import get_backbone
 
         embedding = get_backbone(header["backbone"], **header["backbone_options"])
     input_shape = tuple(header["input_shape"]) if header["input_shape"] is not None else None

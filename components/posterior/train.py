@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from components import seeding
+from components.core import seeding
 from components.posterior.checkpoint import load_checkpoint, save_checkpoint
 from components.posterior.loss import npe_loss
 from components.posterior.model import NPE

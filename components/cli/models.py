@@ -1,0 +1,438 @@
+"""``pidc characterize``, ``pidc domain`` and ``pidc relate``: a registry model applied to image files.
+
+* characterize — per image, the posterior's median and 68.27 % HDI per parameter (Task I), optionally the draws
+  (CSV/Parquet) and a corner plot per image;
+* domain — a folder of images as one weighted bag (equal weights, a weights CSV, or an exponentially decaying
+  stream) → the domain's weather distribution (Task II);
+* relate — a target folder against source folders: mixture weights λ̂, gaps, and the out-of-ODD verdict with a
+  threshold calibrated on in-ODD targets resampled from the sources (Task III).
+
+Models come from the registry (:func:`components.export.lookup.load_registered`: ``champion``, a model id, or an exported
+folder). Unreadable images are reported one line each on stderr and skipped. Heavy imports happen inside commands.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+import warnings
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from components.cli.errors import CLIError
+from components.core.seeding import derive_seed
+
+__all__ = ["add_registry_commands", "read_weights_csv"]
+
+#: Images read and turned into posterior inputs per batch (bounds memory for large folders).
+READ_BATCH = 64
+
+
+# --- shared -----------------------------------------------------------------------------------------------------
+
+
+def _load_model(args: argparse.Namespace) -> Any:
+    """The registry model of ``--model``/``--registry`` (:class:`components.export.lookup.RegisteredPosterior`)."""
+    from components.export.lookup import load_registered
+
+    try:
+        return load_registered(args.model, args.registry)
+    except (FileNotFoundError, ValueError) as e:
+        raise CLIError(str(e)) from None
+
+
+def _list(paths: Sequence[str | Path]) -> list[Path]:
+    from components.core.images import ImageError, list_images
+
+    try:
+        return list_images(paths)
+    except ImageError as e:
+        raise CLIError(str(e)) from None
+
+
+def _progress(total: int, desc: str) -> Any:
+    """A tqdm bar on stderr over ``total`` images (shown on a terminal and for more than one image)."""
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="image", file=sys.stderr, disable=True if total < 2 else None)
+
+
+def _say(bar: Any, text: str, err: bool = False) -> None:
+    """Print ``text`` without breaking the progress bar."""
+    bar.write(text, file=sys.stderr if err else sys.stdout)
+
+
+@dataclass(frozen=True)
+class _Read:
+    """Posterior inputs of readable images: ``paths[i]``, ``notes[i]`` and ``x[i]`` (the model's input)."""
+
+    paths: list[Path]
+    notes: list[str | None]
+    x: np.ndarray
+
+
+def _inputs(model: Any, images: list[np.ndarray], bar: Any, command: str) -> np.ndarray:
+    """uint8 images of any sizes → the model's inputs ``x (n, …)`` in the same order (one batch per size).
+
+    The backbone's one-time "converting H×W images" warning becomes a ``note:`` line on stderr.
+    """
+    from components.core.images import group_by_size
+
+    out: np.ndarray | None = None
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", UserWarning)
+        for idx, batch in group_by_size(images):
+            x = model.inputs(batch)
+            if out is None:
+                out = np.empty((len(images), *x.shape[1:]), dtype=x.dtype)
+            out[idx] = x
+    for message in dict.fromkeys(str(w.message) for w in caught):
+        _say(bar, f"pidc {command}: note: {message}", err=True)
+    assert out is not None
+    return out
+
+
+def _read_batches(model: Any, paths: list[Path], command: str, desc: str) -> Iterator[tuple[_Read, Any]]:
+    """Read ``paths`` in batches of :data:`READ_BATCH`: yields the readable ones' inputs (and the progress bar).
+
+    Bad files are reported on stderr (``pidc <command>: skipped <path>: <reason>``) and left out.
+    """
+    from components.core.images import ImageError, read_image
+
+    with _progress(len(paths), desc) as bar:
+        for start in range(0, len(paths), READ_BATCH):
+            good: list[Path] = []
+            notes: list[str | None] = []
+            images: list[np.ndarray] = []
+            for path in paths[start : start + READ_BATCH]:
+                try:
+                    image, note = read_image(path)
+                except ImageError as e:
+                    _say(bar, f"pidc {command}: skipped {e}", err=True)
+                else:
+                    good.append(path)
+                    notes.append(note)
+                    images.append(image)
+                bar.update(1)
+            if good:
+                yield _Read(good, notes, _inputs(model, images, bar, command)), bar
+
+
+def _read_all(model: Any, paths: list[Path], command: str, desc: str) -> _Read:
+    """All readable images' inputs at once (the bag of a domain); CLIError when none is readable."""
+    parts = [read for read, _ in _read_batches(model, paths, command, desc)]
+    if not parts:
+        raise CLIError(f"none of the {len(paths)} images could be read")
+    return _Read([p for r in parts for p in r.paths], [n for r in parts for n in r.notes],
+                 np.concatenate([r.x for r in parts]))
+
+
+def _check_corner_path(path: Path | None) -> None:
+    if path is None:
+        return
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fmt = path.suffix.lstrip(".").lower()
+    if fmt not in FigureCanvasAgg.get_supported_filetypes():
+        raise CLIError(f"--corner {path}: unknown image type {path.suffix!r}; use e.g. a .png file")
+
+
+def _corner(draws: np.ndarray, box: Any, title: str, path: Path) -> None:
+    from components.plots import corner_plot, save_figure
+
+    save_figure(corner_plot(draws, box=box, title=title), path)
+
+
+def _positive(value: int, option: str) -> int:
+    if value < 1:
+        raise CLIError(f"{option} must be a positive integer, got {value}")
+    return value
+
+
+def _seed(value: int) -> int:
+    if value < 0:
+        raise CLIError(f"--seed must be a non-negative integer, got {value}")
+    return value
+
+
+# --- characterize ---------------------------------------------------------------------------------------------
+
+
+def _corner_paths(base: Path, paths: list[Path]) -> dict[Path, Path]:
+    """One corner file per image: ``base`` itself for one image, else ``<stem>-<image stem><suffix>`` (unique)."""
+    if len(paths) == 1:
+        return {paths[0]: base}
+    out: dict[Path, Path] = {}
+    used: set[str] = set()
+    for p in paths:
+        name = f"{base.stem}-{p.stem}"
+        k = 2
+        while name in used:
+            name = f"{base.stem}-{p.stem}-{k}"
+            k += 1
+        used.add(name)
+        out[p] = base.with_name(name + base.suffix)
+    return out
+
+
+def _cmd_characterize(args: argparse.Namespace) -> int:
+    """Per image a table block (median, HDI); the draws of an image are seeded by (``--seed``, its path), so they do
+    not depend on the other images given."""
+    from components.cli.drawsfile import DrawsWriter, check_draws_path
+    from components.evaluate.summary import format_summary, summarize
+
+    n = _positive(args.samples, "--samples")
+    seed = _seed(args.seed)
+    _check_corner_path(args.corner)
+    if args.samples_out is not None:
+        try:
+            check_draws_path(args.samples_out)
+        except (ValueError, ImportError) as e:
+            raise CLIError(f"--samples-out {e}") from None
+    paths = _list(args.images)
+    model = _load_model(args)
+    post = model.posterior
+    writer = None if args.samples_out is None else DrawsWriter(args.samples_out, post.box.names)
+    corners = _corner_paths(args.corner, paths) if args.corner is not None else {}
+    done = 0
+    try:
+        for read, bar in _read_batches(model, paths, "characterize", "characterize"):
+            for i, path in enumerate(read.paths):
+                draws = post.sample(read.x[i : i + 1], n, derive_seed(seed, "characterize", str(path)))[0]
+                head = f"== {path}" + (f"  (note: {read.notes[i]})" if read.notes[i] else "")
+                _say(bar, f"{head}\n{format_summary(summarize(draws), post.box)}\n")
+                if writer is not None:
+                    writer.write(str(path), draws)
+                if path in corners:
+                    _corner(draws, post.box, f"{path.name} — {model.name}", corners[path])
+                done += 1
+    except BaseException:
+        if writer is not None:
+            writer.discard()
+        raise
+    if done == 0:
+        if writer is not None:
+            writer.discard()
+        raise CLIError(f"none of the {len(paths)} images could be read")
+    if writer is not None:
+        writer.close()
+        print(f"wrote {writer.rows} draws of {done} images to {writer.path}", file=sys.stderr)
+    skipped = len(paths) - done
+    print(f"characterized {done} image{'s' * (done != 1)} with {model.name} ({n} draws each, seed {seed})"
+          + (f"; skipped {skipped}" if skipped else ""), file=sys.stderr)
+    return 0
+
+
+# --- domain ---------------------------------------------------------------------------------------------------
+
+
+def read_weights_csv(path: str | Path) -> dict[str, float]:
+    """A weights file: rows ``<image file name>,<weight>``, an optional header row (e.g. ``image,weight``).
+
+    Returns ``{name: weight}`` in file order. Raises ``ValueError`` naming the file and line for a row without
+    exactly two cells, a weight that is not a finite non-negative number, a repeated name, or an empty table; and when
+    all weights are zero.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such weights file")
+    out: dict[str, float] = {}
+    with open(path, newline="", encoding="utf-8") as f:
+        for line, row in enumerate(csv.reader(f), start=1):
+            cells = [c.strip() for c in row]
+            if not any(cells) or cells[0].startswith("#"):
+                continue
+            if len(cells) != 2:
+                raise ValueError(f"{path} line {line}: expected 2 cells (image,weight), got {len(cells)}")
+            name, text = cells
+            try:
+                w = float(text)
+            except ValueError:
+                if not out and line == 1:  # a header row
+                    continue
+                raise ValueError(f"{path} line {line}: weight {text!r} of {name!r} is not a number") from None
+            if not math.isfinite(w) or w < 0:
+                raise ValueError(f"{path} line {line}: weight of {name!r} must be finite and non-negative, got {text}")
+            if name in out:
+                raise ValueError(f"{path} line {line}: {name!r} is listed twice")
+            out[name] = w
+    if not out:
+        raise ValueError(f"{path}: no weights (expected rows image,weight)")
+    if not any(w > 0 for w in out.values()):
+        raise ValueError(f"{path}: all weights are zero; at least one image needs a positive weight")
+    return out
+
+
+def _effective_size(weights: np.ndarray) -> float:
+    """Kish's effective number of members, (Σw)²/Σw²."""
+    w = np.asarray(weights, dtype=np.float64)
+    return float(w.sum() ** 2 / np.sum(w**2))
+
+
+def _cmd_domain(args: argparse.Namespace) -> int:
+    """The folder's images as one :class:`components.domains.absolute.Domain`; skipped images do not count as stream steps."""
+    from components.domains.absolute import Domain, ExponentialFilter
+    from components.evaluate.summary import format_summary, summarize
+
+    n = _positive(args.samples, "--samples")
+    seed = _seed(args.seed)
+    _check_corner_path(args.corner)
+    folder = Path(args.folder)
+    if not folder.is_dir():
+        raise CLIError(f"{folder}: not a folder (pidc domain takes a folder of images)")
+    if args.decay is not None and not (0.0 < args.decay <= 1.0):
+        raise CLIError(f"--decay must be in (0, 1] (the weight factor per image of age), got {args.decay:g}")
+    paths = _list([folder])
+    weights: dict[str, float] | None = None
+    if args.weights is not None:
+        try:
+            weights = read_weights_csv(args.weights)
+        except ValueError as e:
+            raise CLIError(f"--weights {e}") from None
+        by_name = {p.name: p for p in paths}
+        missing = [name for name in weights if name not in by_name]
+        if missing:
+            raise CLIError(f"--weights {args.weights}: {len(missing)} listed image(s) not found among the images of "
+                           f"{folder}, e.g. {missing[0]!r}")
+        ignored = len(paths) - len(weights)
+        if ignored:
+            print(f"pidc domain: note: {ignored} image(s) of {folder} are not in {args.weights}: left out",
+                  file=sys.stderr)
+        paths = [by_name[name] for name in weights if weights[name] > 0]
+    model = _load_model(args)
+    bag = _read_all(model, paths, "domain", f"domain {folder.name}")
+    if weights is not None:
+        how = f"weights from {args.weights}"
+        domain = Domain(model.posterior, bag.x, [weights[p.name] for p in bag.paths])
+    elif args.decay is not None:
+        how = f"a stream in file-name order, weight × {args.decay:g} per image of age (newest last)"
+        stream = ExponentialFilter(model.posterior, decay=args.decay)
+        for i in range(len(bag.paths)):
+            stream.update(bag.x[i : i + 1])
+        domain = stream.domain()
+    else:
+        how = "equal weights"
+        domain = Domain(model.posterior, bag.x)
+    draws = domain.sample(n, derive_seed(seed, "domain"))
+    box = model.posterior.box
+    print(f"domain {folder}: {len(bag.paths)} images, {how}; effective size {_effective_size(domain.weights):.1f}")
+    print(f"model {model.name}; {n} draws from the mixture of the posteriors (seed {seed})")
+    print(format_summary(summarize(draws), box, moments=True))
+    if args.corner is not None:
+        _corner(draws, box, f"domain {folder.name} — {model.name}", args.corner)
+        print(f"wrote {args.corner}", file=sys.stderr)
+    return 0
+
+
+# --- relate ---------------------------------------------------------------------------------------------------
+
+
+def _cmd_relate(args: argparse.Namespace) -> int:
+    """Each folder an equally weighted :class:`components.domains.absolute.Domain`; the verdict is
+    :func:`components.domains.relative.calibrate_on_sources`'s detector on :attr:`Relation.relative_gap`."""
+    from components.domains.absolute import Domain
+    from components.domains.relative import calibrate_on_sources, relate
+
+    seed = _seed(args.seed)
+    folders = [Path(args.target), *map(Path, args.sources)]
+    for f in folders:
+        if not f.is_dir():
+            raise CLIError(f"{f}: not a folder (pidc relate takes folders of images)")
+    k = len(args.sources)
+    if args.points < k:
+        raise CLIError(f"--points {args.points} cannot determine {k} mixture weights: need --points ≥ {k}")
+    alpha = args.false_alarm_rate
+    if not (0.0 < alpha < 1.0):
+        raise CLIError(f"--false-alarm-rate must be in (0, 1), got {alpha:g}")
+    need = math.ceil((1.0 - alpha) / alpha - 1e-9)
+    if args.calibration_targets < need:
+        raise CLIError(f"--calibration-targets must be ≥ {need} for --false-alarm-rate {alpha:g}, "
+                       f"got {args.calibration_targets}")
+    listed = [_list([f]) for f in folders]
+    model = _load_model(args)
+    bags = [_read_all(model, paths, "relate", f"read {f.name}") for f, paths in zip(folders, listed)]
+    target, *sources = [Domain(model.posterior, b.x) for b in bags]
+    names = [f.name for f in folders[1:]]
+    if len(set(names)) < len(names):
+        names = [str(f) for f in folders[1:]]
+    try:
+        rel = relate(target, sources, args.points, derive_seed(seed, "relate"))
+        detector = calibrate_on_sources(sources, args.calibration_targets, args.points, alpha,
+                                        derive_seed(seed, "calibrate"), target_size=len(target),
+                                        progress=sys.stderr.isatty())
+    except ValueError as e:
+        raise CLIError(str(e)) from None
+    outside = detector.decide(rel.relative_gap)
+    print(f"target {folders[0]}: {len(target)} images; model {model.name}; {args.points} points (seed {seed})")
+    width = max(len("source"), *map(len, names))
+    print(f"{'source':<{width}}  {'images':>6}  {'weight λ̂':>9}")
+    for name, s, lam in zip(names, sources, rel.weights):
+        print(f"{name:<{width}}  {len(s):>6}  {lam:>9.4f}")
+    print(f"mean squared gap δ: {rel.gap:.4g} (density², physical units)")
+    print(f"relative gap δ/mean(b²): {rel.relative_gap:.4g}")
+    if rel.degenerate:
+        print("degenerate: yes — the sources are linearly dependent (e.g. the same images): λ̂ is not unique; "
+              "shown is the minimum-norm one")
+    else:
+        print("degenerate: no")
+    held = min(len(target), sum(len(s) // 2 for s in sources))  # calibrate_on_sources holds out ≤ half a source
+    print(f"threshold: {detector.threshold:.4g} (relative gap; {detector.n_calibration} in-ODD targets of "
+          f"{held} images held out of the sources; false-alarm rate {alpha:g})")
+    if k == 1:
+        print("note: one source, so λ̂ = 1; the verdict says whether the target looks like that source")
+    print(f"verdict: {'OUTSIDE the ODD' if outside else 'inside the ODD'} "
+          f"(relative gap {'>' if outside else '≤'} threshold; false-alarm rate {alpha:g})")
+    return 0
+
+
+# --- parser ---------------------------------------------------------------------------------------------------
+
+
+def _model_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--model", default="champion",
+                   help="'champion' (the model reports/task1/champion.json names), a model id under the registry, "
+                        "or an exported folder (default: champion)")
+    p.add_argument("--registry", type=Path, default=Path("registry"), help="the registry folder (default: registry)")
+    p.add_argument("--seed", type=int, default=0, help="seed of every random draw (default 0)")
+
+
+def add_registry_commands(sub: Any) -> None:
+    """Add ``characterize``, ``domain`` and ``relate`` to the ``pidc`` subcommands ``sub``."""
+    p = sub.add_parser("characterize", help="per image: the posterior's median and 68.27 %% HDI per parameter")
+    p.add_argument("images", nargs="+", metavar="IMAGE_OR_FOLDER", help="image files and/or folders of images")
+    _model_options(p)
+    p.add_argument("--samples", type=int, default=1000, help="posterior draws per image (default 1000)")
+    p.add_argument("--samples-out", type=Path, metavar="FILE", help="write the draws: FILE.csv or FILE.parquet")
+    p.add_argument("--corner", type=Path, metavar="FILE.png",
+                   help="corner plot; for several images one per image, named FILE-<image stem>.png")
+    p.set_defaults(func=_cmd_characterize)
+
+    p = sub.add_parser("domain", help="a folder of images as one weighted bag: the domain's weather distribution")
+    p.add_argument("folder", metavar="FOLDER")
+    how = p.add_mutually_exclusive_group()
+    how.add_argument("--weights", type=Path, metavar="FILE.csv",
+                     help="rows <image file name>,<weight> (header optional); images not listed are left out")
+    how.add_argument("--decay", type=float, metavar="RATE",
+                     help="the images in file-name order are a stream; weights × RATE ∈ (0, 1] per image of age")
+    _model_options(p)
+    p.add_argument("--samples", type=int, default=1000, help="draws from the domain's distribution (default 1000)")
+    p.add_argument("--corner", type=Path, metavar="FILE.png", help="corner plot of the domain's distribution")
+    p.set_defaults(func=_cmd_domain)
+
+    p = sub.add_parser("relate", help="a target folder as a mixture of source folders, and the out-of-ODD verdict")
+    p.add_argument("target", metavar="TARGET_FOLDER")
+    p.add_argument("sources", nargs="+", metavar="SOURCE_FOLDER",
+                   help="source domains (one folder each); with one source λ̂ = 1 and the verdict tests likeness")
+    _model_options(p)
+    p.add_argument("--points", type=int, default=16, help="n_W, points drawn from the target (default 16)")
+    p.add_argument("--false-alarm-rate", type=float, default=0.05,
+                   help="rate at which in-ODD targets are declared outside (default 0.05)")
+    p.add_argument("--calibration-targets", type=int, default=100,
+                   help="in-ODD targets held out of the sources to set the threshold (default 100)")
+    p.set_defaults(func=_cmd_relate)

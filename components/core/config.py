@@ -1,0 +1,378 @@
+"""Typed, validated configuration: ``params.yaml`` parsed once into frozen objects.
+
+Every knob of the pipeline lives in ``params.yaml`` (the default profile) or a second params file
+(``profiles/paper.yaml``); this module is its only reader. An unknown key, a missing key or a bad
+value raises :class:`ConfigError` naming the file and the dotted key.
+
+Sections are owned by the components that use them; each is a small pydantic model here so that one
+file shows every setting and its meaning.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from components.core import weather
+
+__all__ = ["ConfigError", "Params", "load_params", "PROJECT_ROOT"]
+
+#: The repository root (where ``params.yaml`` and ``dvc.yaml`` live).
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+
+
+class ConfigError(ValueError):
+    """A params file is unreadable, has an unknown or missing key, or a bad value."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+PositiveInt = Annotated[int, Field(gt=0)]
+NonNegativeInt = Annotated[int, Field(ge=0)]
+
+
+class CarlaConfig(_Section):
+    """Connection and scene settings of the CARLA backend (``simulator.backend: carla``)."""
+
+    host: str = "127.0.0.1"
+    port: Annotated[int, Field(gt=0, lt=65536)] = 2000
+    timeout_s: Annotated[float, Field(gt=0)] = 10.0
+    #: maps drawn from by the scene seed; empty = every map the server offers
+    maps: tuple[str, ...] = ()
+    fixed_delta_seconds: Annotated[float, Field(gt=0, le=0.1)] = 0.05
+    #: ticks between setting the weather and capturing (auto-exposure settles)
+    settle_ticks: PositiveInt = 10
+    traffic_manager_port: Annotated[int, Field(gt=0, lt=65536)] = 8000
+    max_vehicles: NonNegativeInt = 15
+    max_pedestrians: NonNegativeInt = 10
+    #: horizontal field of view of the RGB camera, degrees
+    fov: Annotated[float, Field(gt=0, lt=180)] = 90.0
+
+
+class SimulatorConfig(_Section):
+    """Which simulator renders the data, and at what resolution (pixels)."""
+
+    backend: Literal["procedural", "carla"] = "procedural"
+    height: PositiveInt = 128
+    width: PositiveInt = 128
+    carla: CarlaConfig = CarlaConfig()
+
+
+class RunnerConfig(_Section):
+    """The Prefect task runner of fan-out flows: threads, processes, or a Dask cluster."""
+
+    kind: Literal["threads", "processes", "dask"] = "processes"
+    workers: PositiveInt = 2
+    #: address of an existing Dask scheduler (``tcp://host:8786``); null = a local cluster
+    dask_address: str | None = None
+
+
+class DataConfig(_Section):
+    """The simulated dataset: split sizes, sharding and scene reuse."""
+
+    root: str = "data"
+    #: number of images per split; the train split must cover the largest training size
+    splits: dict[Literal["train", "val", "test"], PositiveInt] = {"train": 10000, "val": 2000, "test": 2000}
+    shard_size: PositiveInt = 500
+    #: consecutive images rendered in the same scene (a map and spawn point under many weathers)
+    images_per_scene: PositiveInt = 8
+    runner: RunnerConfig = RunnerConfig()
+
+    @field_validator("splits")
+    @classmethod
+    def _all_splits(cls, v: dict[str, int]) -> dict[str, int]:
+        missing = {"train", "val", "test"} - set(v)
+        if missing:
+            raise ValueError(f"missing split(s) {sorted(missing)}; need train, val and test")
+        return v
+
+
+class ContactSheetConfig(_Section):
+    """The generate stage's contact sheet: each row sweeps one parameter from low to high."""
+
+    steps: Annotated[int, Field(ge=2)] = 6
+    scenes: PositiveInt = 2
+    path: str = "reports/data/contact_sheet.png"
+
+
+class BackbonesConfig(_Section):
+    """The image backbones of the grid and where pretrained weights are found."""
+
+    names: tuple[str, ...] = ("cues", "cnn", "tiny")
+    #: a local directory holding one sub-folder of Hugging Face weights per pretrained backbone
+    pretrained_dir: str | None = None
+    batch_size: PositiveInt = 256
+
+
+class FlowParams(_Section):
+    """The conditional neural spline flow (``components.posterior.FlowConfig``)."""
+
+    transforms: PositiveInt = 3
+    hidden_features: tuple[PositiveInt, ...] = (128, 128)
+    bins: Annotated[int, Field(ge=2)] = 8
+    #: 2 = coupling flow (fast sampling); null = fully autoregressive
+    passes: PositiveInt | None = 2
+    #: flows in an equal-weight ensemble (calibration beyond the paper; 1 = a single flow)
+    ensemble: PositiveInt = 1
+
+
+class VariantConfig(_Section):
+    """A model beside the grid: one backbone and size trained with other calibration settings.
+
+    Variants are keyed by name in ``train.variants``; the model id is ``<backbone>-<size>-<name>``."""
+
+    backbone: str
+    size: PositiveInt
+    #: λ of balanced NPE for this model
+    balance: Annotated[float, Field(ge=0)] = 0.0
+    #: flows in this model's equal-weight ensemble
+    ensemble: PositiveInt = 1
+
+
+class TrainConfig(_Section):
+    """The grid of models (backbone × training size) and how each is trained."""
+
+    #: training-set sizes: nested prefixes of the train split
+    sizes: tuple[PositiveInt, ...] = (1000, 3000, 10000)
+    #: the MLflow experiment of the grid
+    experiment: str = "pidc-grid"
+    flow: FlowParams = FlowParams()
+    epochs: PositiveInt = 60
+    #: maximum epochs for a backbone trained jointly with the flow (costly on a CPU)
+    embedding_epochs: PositiveInt = 8
+    batch_size: PositiveInt = 256
+    lr: Annotated[float, Field(gt=0)] = 1e-3
+    weight_decay: Annotated[float, Field(ge=0)] = 1e-4
+    schedule: Literal["cosine", "plateau", "constant"] = "cosine"
+    #: early stopping: epochs without improvement of the validation loss
+    patience: PositiveInt = 10
+    clip_norm: Annotated[float, Field(gt=0)] | None = 5.0
+    #: λ of balanced NPE (calibration beyond the paper; 0 = plain NPE)
+    balance: Annotated[float, Field(ge=0)] = 0.0
+    #: calibrated variants trained and evaluated beside the grid
+    variants: dict[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")], VariantConfig] = Field(default_factory=dict)
+
+
+class EvaluateConfig(_Section):
+    """Task I evaluation of every model of the grid on the test split."""
+
+    #: test images evaluated (the first ones of the test split)
+    images: PositiveInt = 500
+    #: posterior samples per image (HPD credibility, coverage, π); the 99.73 % HDR of the plots needs ≥ 371
+    samples: Annotated[int, Field(ge=400)] = 1000
+    #: images given a posterior predictive check, and re-renders per check (posterior and prior each)
+    ppc_images: PositiveInt = 4
+    ppc_renders: Annotated[int, Field(ge=2)] = 6
+    #: test images shown as histograms and corner plots per model
+    example_images: NonNegativeInt = 1
+
+
+class ExportConfig(_Section):
+    """ONNX export of every model into ``registry/`` and its registration in the MLflow Model Registry."""
+
+    #: torch → ONNX exporter: ``torchscript`` (~5 s a model here; deprecated by torch but checked against torch at
+    #: export time) or ``dynamo`` (torch.export, torch's maintained route; 50–130 s a model here)
+    exporter: Literal["torchscript", "dynamo"] = "torchscript"
+    #: registered model name = prefix + model id (e.g. ``pidc-cues-1000``)
+    registered_prefix: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]*$")] = "pidc-"
+    #: the Task I metric (lower is better) whose best model gets the alias ``champion`` after the evaluation
+    champion_metric: Literal["calibration_error", "test_nll"] = "calibration_error"
+
+
+class GaussianMode(_Section):
+    """One component of Task II's Gaussian mixture over (fog_density, precipitation), physical units."""
+
+    weight: Annotated[float, Field(gt=0)]
+    mean: tuple[float, float]
+    std: tuple[Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]]
+
+
+class Task2Config(_Section):
+    """Task II: a bag of rendered images whose weather follows a known distribution → its characterization."""
+
+    #: the registry model characterizing the bag: a model id, or ``champion`` (best calibrated, after evaluate)
+    model: str = "champion"
+    #: images in the bag (all equally weighted), rendered in fresh scenes
+    images: PositiveInt = 1000
+    images_per_scene: PositiveInt = 8
+    #: the fixed predicted parameters (every one but fog_density and precipitation), physical units
+    fixed: dict[str, float] = Field(default_factory=lambda: {"cloudiness": 30.0, "sun_altitude_angle": 45.0,
+                                                             "wind_intensity": 20.0, "precipitation_deposits": 30.0})
+    #: the Gaussian mixture over (fog_density, precipitation), truncated to the prior box
+    modes: tuple[GaussianMode, ...] = (
+        GaussianMode(weight=0.4, mean=(15.0, 20.0), std=(6.0, 8.0)),
+        GaussianMode(weight=0.35, mean=(60.0, 75.0), std=(8.0, 8.0)),
+        GaussianMode(weight=0.25, mean=(35.0, 50.0), std=(5.0, 6.0)),
+    )
+    #: draws from the estimate and from the true distribution (metrics and plots)
+    samples: Annotated[int, Field(ge=100)] = 20000
+    #: the estimate's highest-density region whose share of the true mass is reported
+    hdr_level: Annotated[float, Field(gt=0, lt=1)] = 0.95
+
+    @field_validator("fixed")
+    @classmethod
+    def _fixed_params(cls, v: dict[str, float]) -> dict[str, float]:
+        expected = set(weather.PREDICTED) - {"fog_density", "precipitation"}
+        if set(v) != expected:
+            raise ValueError(f"must give exactly {sorted(expected)} (fog_density and precipitation follow the "
+                             f"mixture), got {sorted(v)}")
+        return v
+
+
+class BagConfig(_Section):
+    """A Task III bag: the test images whose weather lies in a sub-box of the prior (uniform on it)."""
+
+    #: the sub-box, per predicted parameter (omitted ones span the prior), physical units
+    box: dict[str, tuple[float, float]]
+    #: at most this many images (the first ones of the test split inside the sub-box)
+    max_images: PositiveInt
+
+
+class Task3Config(_Section):
+    """Task III: targets mixing three source bags and an out-of-ODD bag b0 at noise level η (the paper's sweep)."""
+
+    #: the registry model characterizing every bag: a model id, or ``champion``
+    model: str = "champion"
+    #: b0 (out of the ODD; disjoint from the others), then the sources b1, b2, b3
+    bags: dict[Annotated[str, Field(pattern=r"^b[0-9]+$")], BagConfig] = Field(default_factory=dict)
+    #: the true mixture weights λ of the sources b1, b2, … (on the simplex)
+    weights: tuple[Annotated[float, Field(ge=0)], ...] = (0.2, 0.3, 0.5)
+    #: noise levels η: the share of b0 in the target
+    etas: tuple[Annotated[float, Field(ge=0, le=1)], ...] = tuple(round(0.1 * i, 1) for i in range(11))
+    repetitions: PositiveInt = 30
+    #: n_W, points drawn from the target's characterization where the densities are compared
+    n_points: PositiveInt = 16
+    #: the ODD decision's false-alarm rate α, and the in-ODD (η = 0) targets calibrating its threshold
+    false_alarm_rate: Annotated[float, Field(gt=0, lt=1)] = 0.05
+    calibration_targets: PositiveInt = 100
+    #: beyond the paper: also run fresh targets (their in-ODD part from other test images of the sources' sub-boxes);
+    #: the ODD decision is then calibrated and judged on them (see components.domains.sweep)
+    fresh_targets: bool = True
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Task3Config:
+        names = sorted(self.bags, key=lambda n: int(n[1:]))
+        if names != [f"b{i}" for i in range(len(names))] or len(names) < 3:
+            raise ValueError(f"bags must be b0 (out of the ODD), b1, b2, … with at least two sources, got {names}")
+        if len(self.weights) != len(names) - 1:
+            raise ValueError(f"weights has {len(self.weights)} entries for {len(names) - 1} sources (b1…)")
+        if abs(sum(self.weights) - 1.0) > 1e-9:
+            raise ValueError(f"weights must sum to 1, got {sum(self.weights)}")
+        if 0.0 not in self.etas:
+            raise ValueError("etas must contain 0 (in-ODD targets: the reference of the ROC curves)")
+        if self.n_points < len(names) - 1:
+            raise ValueError(f"n_points = {self.n_points} cannot determine {len(names) - 1} weights")
+        boxes = {}
+        for name, bag in self.bags.items():
+            try:
+                boxes[name] = weather.Box.from_mapping(bag.box)
+            except ValueError as e:
+                raise ValueError(f"bags.{name}.box: {e}") from None
+        for name in names[1:]:  # b0 must be out of the ODD: disjoint from every source's box
+            a, b = boxes["b0"], boxes[name]
+            if not np.any((a.high < b.low) | (b.high < a.low)):
+                raise ValueError(f"bags.b0.box overlaps bags.{name}.box: b0 must be disjoint from every source")
+        return self
+
+    @property
+    def sources(self) -> list[str]:
+        """The source bags b1, b2, … in order."""
+        return sorted((n for n in self.bags if n != "b0"), key=lambda n: int(n[1:]))
+
+
+class Params(_Section):
+    """The whole ``params.yaml``."""
+
+    profile: str = "default"
+    #: the root of every random draw in the pipeline
+    seed: NonNegativeInt = 2026
+    simulator: SimulatorConfig = SimulatorConfig()
+    prior: dict[str, tuple[float, float]] = Field(default_factory=dict)
+    data: DataConfig = DataConfig()
+    contact_sheet: ContactSheetConfig = ContactSheetConfig()
+    backbones: BackbonesConfig = BackbonesConfig()
+    train: TrainConfig = TrainConfig()
+    evaluate: EvaluateConfig = EvaluateConfig()
+    export: ExportConfig = ExportConfig()
+    task2: Task2Config = Task2Config()
+    task3: Task3Config = Task3Config(bags={
+        "b0": BagConfig(box={"sun_altitude_angle": (-90.0, -15.0), "fog_density": (50.0, 100.0)}, max_images=176),
+        "b1": BagConfig(box={"sun_altitude_angle": (15.0, 90.0), "precipitation": (0.0, 30.0),
+                             "cloudiness": (0.0, 40.0)}, max_images=27),
+        "b2": BagConfig(box={"sun_altitude_angle": (15.0, 90.0), "precipitation": (60.0, 100.0)}, max_images=21),
+        "b3": BagConfig(box={"sun_altitude_angle": (0.0, 90.0), "fog_density": (0.0, 40.0),
+                             "cloudiness": (60.0, 100.0)}, max_images=26),
+    })
+
+    @field_validator("prior")
+    @classmethod
+    def _prior_box(cls, v: dict[str, tuple[float, float]]) -> dict[str, tuple[float, float]]:
+        weather.Box.from_mapping(v)  # raises ValueError naming the parameter
+        return v
+
+    @model_validator(mode="after")
+    def _train_fits(self) -> Params:
+        largest = max(self.train.sizes)
+        if largest > self.data.splits["train"]:
+            raise ValueError(
+                f"train.sizes has {largest} but data.splits.train is only {self.data.splits['train']}: "
+                "the train split must cover the largest training size"
+            )
+        for name, v in self.train.variants.items():
+            if v.backbone not in self.backbones.names or v.size not in self.train.sizes:
+                raise ValueError(f"train.variants.{name} needs a backbone in backbones.names and a size in "
+                                 f"train.sizes, got {v.backbone!r} and {v.size}")
+        if self.evaluate.images > self.data.splits["test"]:
+            raise ValueError(f"evaluate.images is {self.evaluate.images} but the test split has only "
+                             f"{self.data.splits['test']} images")
+        return self
+
+    @property
+    def box(self) -> weather.Box:
+        """The uniform prior's support in θ-space."""
+        return weather.Box.from_mapping(self.prior)
+
+
+def _format_error(path: Path, err: ValidationError) -> str:
+    lines = [f"{path}: invalid params"]
+    for e in err.errors():
+        key = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        msg = e["msg"]
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key"
+        elif e["type"] == "missing":
+            msg = "missing key"
+        lines.append(f"  {key}: {msg}")
+    return "\n".join(lines)
+
+
+def parse_params(data: object, *, source: str | Path = "<params>") -> Params:
+    """Validate an already-loaded mapping (e.g. from YAML) into :class:`Params`."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: the top level must be a mapping, got {type(data).__name__}")
+    try:
+        return Params.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_format_error(Path(source), err)) from None
+
+
+def load_params(path: str | Path | None = None) -> Params:
+    """Read and validate a params file (default: ``params.yaml`` at the project root)."""
+    p = Path(path) if path is not None else PROJECT_ROOT / "params.yaml"
+    try:
+        text = p.read_text()
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot read params file ({e.strerror})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{p}: not valid YAML: {e}") from None
+    return parse_params(data, source=p)

@@ -1,0 +1,194 @@
+"""Task III's experiment: targets that mix the source domains and an out-of-ODD bag at noise level η.
+
+Bags b₀, b₁, …, b_K of observations (b₀ out of the ODD, disjoint from the sources' weather). The target of one
+experiment is (paper, Task III)
+
+    p_𝒯 = (1 − η) Σₖ λₖ p_{bₖ} + η p_{b₀},
+
+with the images of b₁…b_K equally weighted inside their bag and those of b₀ weighted by u ~ U(0, 1) (drawn per
+experiment).
+
+Beyond the paper — *fresh* targets. In the paper's construction the in-ODD part of the target holds the very images
+of the sources, so at η = 0 the target's characterization is exactly a mixture of the sources': λ̂ = λ and δ = 0 up
+to rounding, and any threshold above rounding noise detects every η > 0. A vehicle never sees the sources' images
+again; it sees new images of the same weather. With ``fresh_pools`` (held-out observations of each source's
+weather, e.g. other test images in the same sub-box), a fresh target replaces each bₖ by a random subset of its
+pool of the same size: at η = 0 it is in the ODD but not an exact mixture, so δ at η = 0 measures the sampling
+noise of a bag, the decision threshold is calibrated on realistic in-ODD targets, and the ROC curves say how much
+out-of-ODD weather can be told from that noise. Each experiment relates the target to the sources (:func:`components.domains.relative.relate`, n_W points):
+λ̂, the gap δ(λ̂), its relative version, δ for a λ drawn at random on the simplex (the chance baseline) and
+d_E = ‖λ̂ − λ‖₂. :meth:`NoiseSweep.calibrate` calibrates the out-of-ODD decision on in-ODD targets (η = 0) of its own
+seeds; :func:`summarize` gives the per-η medians, detection rates at the calibrated threshold and the ROC AUC of
+η against η = 0.
+
+Everything works on the posterior's *context* (the embedding of each image computed once):
+``posterior.on_context()`` and ``contexts = posterior.context(x)`` (:class:`components.export.runtime.OnnxPosterior`), so
+the sweep's cost is the flow's density evaluations only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from components.evaluate.diagnostics import roc_curve
+from components.domains.absolute import Domain, Posterior
+from components.domains.relative import OddDetector, SimplexLeastSquares, chance_baseline_gap, relate, simplex_distance
+from components.core.seeding import derive_seed, rng
+
+__all__ = ["Experiment", "NoiseSweep", "summarize", "experiments_by_eta"]
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """One target related to the sources: noise level, repetition and what came out."""
+
+    eta: float
+    repetition: int
+    weights: list[float]
+    gap: float
+    relative_gap: float
+    baseline_gap: float
+    baseline_relative_gap: float
+    d_e: float
+    degenerate: bool
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class NoiseSweep:
+    """The bags of a Task III sweep and the experiments on them.
+
+    Arguments:
+        posterior: q(θ | x) taking the bags' observations (e.g. contexts with ``OnnxPosterior.on_context()``).
+        out_of_odd: b₀'s observations ``(N₀, ...)``.
+        sources: b₁…b_K's observations, K ≥ 1 arrays ``(Nₖ, ...)``.
+        weights: the true λ of the sources ``(K,)`` on the simplex.
+        n_points: n_W, the points drawn from each target.
+        fresh_pools: optional held-out observations of each source's weather (K arrays, each at least as large as
+            its source bag): enables fresh targets (``run(..., fresh=True)``).
+    """
+
+    def __init__(self, posterior: Posterior, out_of_odd: np.ndarray, sources: Sequence[np.ndarray],
+                 weights: Sequence[float], n_points: int = 16, fresh_pools: Sequence[np.ndarray] | None = None) -> None:
+        bags = [np.asarray(out_of_odd)] + [np.asarray(s) for s in sources]
+        for k, bag in enumerate(bags):
+            if bag.ndim < 1 or bag.shape[0] == 0:
+                raise ValueError(f"bag b{k} is empty: every bag needs at least one observation")
+        pools = [] if fresh_pools is None else [np.asarray(p) for p in fresh_pools]
+        if fresh_pools is not None:
+            if len(pools) != len(sources):
+                raise ValueError(f"fresh_pools needs one pool per source ({len(sources)}), got {len(pools)}")
+            for k, (pool, bag) in enumerate(zip(pools, bags[1:]), start=1):
+                if pool.ndim < 1 or pool.shape[0] < bag.shape[0]:
+                    raise ValueError(f"fresh pool of b{k} has {pool.shape[0] if pool.ndim else 0} observations; a fresh "
+                                     f"target needs at least the bag's {bag.shape[0]}")
+        lam = np.asarray(weights, dtype=np.float64)
+        if lam.shape != (len(sources),) or np.any(lam < 0) or not np.isclose(lam.sum(), 1.0):
+            raise ValueError(f"weights must be {len(sources)} values on the simplex, got {lam.tolist()}")
+        self.weights = lam
+        self.n_points = int(n_points)
+        self._sizes = [b.shape[0] for b in bags]
+        self._pool_sizes = [p.shape[0] for p in pools]
+        self._offsets = np.cumsum([0] + self._sizes + self._pool_sizes)  # b₀, b₁…b_K, then the pools
+        self._union = np.concatenate(bags + pools, axis=0)
+        self.posterior = posterior
+        self.sources = [Domain(posterior, b) for b in bags[1:]]
+        self._solver = SimplexLeastSquares()
+
+    @property
+    def sizes(self) -> list[int]:
+        """|b₀|, |b₁|, …"""
+        return list(self._sizes)
+
+    @property
+    def has_fresh(self) -> bool:
+        """True when fresh targets are available (``fresh_pools`` given)."""
+        return bool(self._pool_sizes)
+
+    def target_weights(self, eta: float, seed: int, fresh: bool = False) -> np.ndarray:
+        """The target's weights over the union b₀ ∪ b₁ ∪ … ∪ pools ``(Σ Nₖ,)``: η on b₀ (u ~ U(0, 1) per image) and
+        (1 − η)λₖ on bₖ (equal inside the bag) — or, ``fresh``, on a random |bₖ|-subset of bₖ's pool."""
+        if not 0.0 <= float(eta) <= 1.0:
+            raise ValueError(f"noise level η must be in [0, 1], got {eta!r}")
+        if fresh and not self.has_fresh:
+            raise ValueError("fresh targets need fresh_pools (held-out observations of each source's weather)")
+        w = np.zeros(self._offsets[-1])
+        u = rng(seed, "sweep", "b0-weights").uniform(0.0, 1.0, self._sizes[0])
+        w[: self._sizes[0]] = eta * u / u.sum()
+        k_sources = len(self.weights)
+        pick = rng(seed, "sweep", "fresh")
+        for k, lam in enumerate(self.weights, start=1):
+            if fresh:
+                start = self._offsets[k_sources + k]
+                chosen = start + pick.choice(self._pool_sizes[k - 1], size=self._sizes[k], replace=False)
+                w[chosen] = (1.0 - eta) * lam / self._sizes[k]
+            else:
+                w[self._offsets[k] : self._offsets[k + 1]] = (1.0 - eta) * lam / self._sizes[k]
+        return w
+
+    def target(self, eta: float, seed: int, fresh: bool = False) -> Domain:
+        return Domain(self.posterior, self._union, self.target_weights(eta, seed, fresh))
+
+    def run(self, eta: float, repetition: int, seed: int, fresh: bool = False) -> Experiment:
+        """One experiment at noise level η (a fresh target when ``fresh``); deterministic in its arguments."""
+        s = derive_seed(seed, "sweep", "fresh" if fresh else "paper", f"{float(eta):.6g}", repetition)
+        relation = relate(self.target(eta, s, fresh), self.sources, self.n_points, s, solver=self._solver)
+        baseline = float(chance_baseline_gap(relation.A, relation.b, s)[0])
+        mean_b2 = float(np.mean(relation.b**2))
+        return Experiment(
+            eta=float(eta), repetition=int(repetition), weights=relation.weights.tolist(), gap=relation.gap,
+            relative_gap=relation.relative_gap, baseline_gap=baseline, baseline_relative_gap=baseline / mean_b2,
+            d_e=simplex_distance(relation.weights, self.weights), degenerate=relation.degenerate,
+        )
+
+    def calibrate(self, n_targets: int, false_alarm_rate: float, seed: int, fresh: bool = False
+                  ) -> tuple[OddDetector, np.ndarray]:
+        """The out-of-ODD detector on the relative gap, calibrated on ``n_targets`` in-ODD targets (η = 0, fresh ones
+        when ``fresh``) drawn with seeds of their own (independent of :meth:`run`'s); returns it and the gaps."""
+        s = derive_seed(seed, "sweep", "calibration")
+        gaps = np.array([self.run(0.0, r, s, fresh).relative_gap for r in range(int(n_targets))])
+        return OddDetector.calibrate(gaps, false_alarm_rate), gaps
+
+
+def summarize(experiments: Sequence[Experiment], detector: OddDetector) -> dict[str, dict[str, float]]:
+    """Per η (keys formatted ``"0.1"``): medians of d_E, δ, the chance baseline δ and the relative gaps; the share
+    flagged out of the ODD at the detector's threshold; and (η > 0) the AUC of the relative gap and of δ against the
+    η = 0 experiments."""
+    by_eta: dict[float, list[Experiment]] = {}
+    for e in experiments:
+        by_eta.setdefault(e.eta, []).append(e)
+    if 0.0 not in by_eta:
+        raise ValueError("the experiments need η = 0 (in-ODD targets) as the reference")
+    ref_rel = np.array([e.relative_gap for e in by_eta[0.0]])
+    ref_gap = np.array([e.gap for e in by_eta[0.0]])
+    out: dict[str, dict[str, float]] = {}
+    for eta in sorted(by_eta):
+        es = by_eta[eta]
+        rel = np.array([e.relative_gap for e in es])
+        gap = np.array([e.gap for e in es])
+        row = {
+            "d_e_median": float(np.median([e.d_e for e in es])),
+            "gap_median": float(np.median(gap)),
+            "baseline_gap_median": float(np.median([e.baseline_gap for e in es])),
+            "relative_gap_median": float(np.median(rel)),
+            "baseline_relative_gap_median": float(np.median([e.baseline_relative_gap for e in es])),
+            "flagged_rate": float(np.mean(detector.decide_many(rel))),
+            "repetitions": len(es),
+        }
+        if eta > 0:
+            row["auc"] = roc_curve(ref_rel, rel)[2]
+            row["auc_gap"] = roc_curve(ref_gap, gap)[2]
+        out[f"{eta:g}"] = row
+    return out
+
+
+def experiments_by_eta(experiments: Sequence[Experiment], field: str) -> Mapping[float, np.ndarray]:
+    """η → the values of ``field`` over the repetitions (for box plots and ROC curves)."""
+    out: dict[float, list[float]] = {}
+    for e in experiments:
+        out.setdefault(e.eta, []).append(float(getattr(e, field)))
+    return {k: np.array(v) for k, v in sorted(out.items())}

@@ -1,0 +1,82 @@
+"""Image backbones ``f``: uint8 RGB images → feature vectors for the posterior flow ``p(θ | f(x))``.
+
+The registry names every backbone; :func:`get_backbone` builds one with its options:
+
+============ ========= ====== ======================================================================
+name         trainable dim    what it sees
+============ ========= ====== ======================================================================
+``cues``     no        80     interpretable physical weather cues (haze, contrast vs row, sky, ...)
+``tiny``     no        4·g²   L*a*b* ``g × g`` thumbnail + per-cell contrast (Torralba 2008), g = 8
+``cnn``      yes       64     small CNN on 64×64, trained jointly with the flow (NPE embedding)
+``resnet50`` no        2048   ResNet-50, pooled (needs weights; paper profile)
+``dinov2``   no        384    DINOv2-small CLS token (needs weights; paper profile)
+``clip``     no        768    CLIP ViT-B/32 pooled CLS token (needs weights; paper profile)
+============ ========= ====== ======================================================================
+
+The first three are embedded (no download) and form the default profile; the pretrained ones load
+Hugging Face weights from a local folder or the hub cache and raise :class:`MissingWeightsError` at
+once when they are absent. See :class:`Backbone` for the common interface.
+"""
+
+from __future__ import annotations
+
+import inspect
+from typing import Any
+
+from components.features.backbones.base import Backbone
+from components.features.backbones.cnn import ConvBackbone
+from components.features.backbones.cues import CuesBackbone
+from components.features.backbones.pretrained import ClipBackbone, Dinov2Backbone, PretrainedBackbone, ResNet50Backbone
+from components.features.backbones.tiny import TinyImagesBackbone
+from components.features.backbones.weights import MissingWeightsError
+
+__all__ = [
+    "Backbone",
+    "MissingWeightsError",
+    "get_backbone",
+    "available",
+    "EMBEDDED",
+    "PRETRAINED",
+    "CuesBackbone",
+    "TinyImagesBackbone",
+    "ConvBackbone",
+    "PretrainedBackbone",
+    "ResNet50Backbone",
+    "Dinov2Backbone",
+    "ClipBackbone",
+]
+
+_REGISTRY: dict[str, type[Backbone]] = {
+    cls.name: cls
+    for cls in (CuesBackbone, TinyImagesBackbone, ConvBackbone, ResNet50Backbone, Dinov2Backbone, ClipBackbone)
+}
+
+#: backbones that need no download (default profile)
+EMBEDDED: tuple[str, ...] = ("cues", "tiny", "cnn")
+#: backbones that load pretrained weights (paper profile)
+PRETRAINED: tuple[str, ...] = ("resnet50", "dinov2", "clip")
+
+
+def available() -> list[str]:
+    """The registered backbone names: embedded ones first, then the pretrained ones."""
+    return list(_REGISTRY)
+
+
+def get_backbone(name: str, **options: Any) -> Backbone:
+    """Build the backbone ``name`` with its options (see each class; unknown options are an error).
+
+    Options: ``cues`` none; ``tiny`` ``grid``; ``cnn`` ``seed``, ``dim``, ``width``; pretrained
+    ``path``, ``pretrained_dir``, ``repo_id``, ``download``, ``cache_dir``, ``device``.
+    Raises ``ValueError`` for an unknown name (listing the known ones) or option, and
+    :class:`MissingWeightsError` when a pretrained backbone's weights are not available locally.
+    """
+    if not isinstance(name, str) or name not in _REGISTRY:
+        raise ValueError(f"unknown backbone {name!r}; known backbones: {', '.join(available())}")
+    cls = _REGISTRY[name]
+    accepted = [p for p in inspect.signature(cls.__init__).parameters if p != "self"]
+    unknown = sorted(set(options) - set(accepted))
+    if unknown:
+        raise ValueError(
+            f"backbone {name!r} has no option(s) {unknown}; its options are: {', '.join(accepted) or '(none)'}"
+        )
+    return cls(**options)

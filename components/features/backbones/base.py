@@ -1,0 +1,132 @@
+"""The backbone interface: an image → feature-vector map ``x ↦ f(x) ∈ ℝ^dim`` feeding the posterior flow.
+
+In the paper's notation the flow models ``p(θ | f(x))`` where ``x`` is a front-camera image and ``f``
+the backbone. A backbone is a :class:`torch.nn.Module` with
+
+- ``name`` (registry key), ``dim`` (feature size), ``trainable`` (True: trained jointly with the
+  flow as the NPE embedding network; False: frozen, its features can be cached on disk),
+  ``input_size`` (the ``(H, W)`` in pixels its model input has);
+- :meth:`preprocess` — uint8 RGB images ``(n, H, W, 3)`` → the model input tensor (size conversion
+  included, announced once per backbone instance with :func:`warnings.warn`);
+- :meth:`forward` — model input → features ``(n, dim)`` float32;
+- :meth:`extract` — images → features as a float32 numpy array, batched, under inference mode;
+- :meth:`fingerprint` — a hash of name, code version, configuration and weights, stored next to
+  cached features to detect stale caches.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import warnings
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+from torch import nn
+
+from components.features.backbones.imageops import check_images, resize_area, to_unit_chw
+
+__all__ = ["Backbone"]
+
+
+class Backbone(nn.Module):
+    """Base class of every backbone; see the module docstring for the contract.
+
+    Subclasses set the class attributes, implement :meth:`forward` and :meth:`config`, and may
+    override :meth:`_encode` (uint8 batch already at ``input_size`` → tensor; default: float32
+    ``(n, 3, H, W)`` in [0, 1]) or :meth:`preprocess` altogether.
+    """
+
+    name: ClassVar[str] = ""
+    #: version of the feature definition (code); bump it when features change for the same weights
+    version: ClassVar[str] = "1"
+    dim: int = 0
+    trainable: bool = False
+    input_size: tuple[int, int] = (128, 128)
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._resize_announced = False
+
+    # -- configuration -------------------------------------------------------------------------------
+    def config(self) -> dict[str, Any]:
+        """The options that define the features (JSON-serialisable), e.g. for model cards."""
+        return {}
+
+    def extra_repr(self) -> str:
+        return f"name={self.name!r}, dim={self.dim}, trainable={self.trainable}, input_size={self.input_size}"
+
+    # -- input ---------------------------------------------------------------------------------------
+    def _announce_resize(self, given: tuple[int, int], how: str) -> None:
+        if not self._resize_announced:
+            self._resize_announced = True
+            warnings.warn(
+                f"backbone {self.name!r}: converting {given[0]}×{given[1]} images to its input size "
+                f"{self.input_size[0]}×{self.input_size[1]} ({how})",
+                stacklevel=3,
+            )
+
+    def preprocess(self, images: np.ndarray) -> torch.Tensor:
+        """uint8 RGB images ``(n, H, W, 3)`` (or one ``(H, W, 3)``) → the model input tensor.
+
+        Images of another size than :attr:`input_size` are converted by area interpolation (said once
+        per instance). Wrong dtype or channel count raises ``ValueError`` naming what is expected.
+        """
+        images = check_images(images, who=self.name)
+        size = images.shape[1:3]
+        if size != tuple(self.input_size):
+            self._announce_resize(size, "area interpolation")
+            images = resize_area(images, self.input_size)
+        return self._encode(images)
+
+    def _encode(self, images: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(to_unit_chw(images))
+
+    # -- features ------------------------------------------------------------------------------------
+    def _device(self) -> torch.device:
+        for p in self.parameters():
+            return p.device
+        for b in self.buffers():
+            return b.device
+        return torch.device("cpu")
+
+    def extract(self, images: np.ndarray, batch_size: int = 256, progress: bool = False) -> np.ndarray:
+        """Features of a batch of images: float32 ``(n, dim)``, computed in batches in eval mode.
+
+        Meant for frozen backbones (their features are cached); for a trainable one it gives the
+        features of its current weights. The module's training mode is restored afterwards.
+        """
+        images = check_images(images, who=self.name)
+        if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+            raise ValueError(f"{self.name}: batch_size must be a positive integer, got {batch_size!r}")
+        n = images.shape[0]
+        out = np.empty((n, self.dim), dtype=np.float32)
+        starts = range(0, n, int(batch_size))
+        if progress:
+            from tqdm.auto import tqdm
+
+            starts = tqdm(starts, desc=f"features@{self.name}", unit="batch")
+        was_training = self.training
+        device = self._device()
+        self.eval()
+        try:
+            with torch.inference_mode():
+                for s in starts:
+                    x = self.preprocess(images[s : s + batch_size]).to(device)
+                    out[s : s + x.shape[0]] = self(x).float().cpu().numpy()
+        finally:
+            self.train(was_training)
+        return out
+
+    # -- identity ------------------------------------------------------------------------------------
+    def fingerprint(self) -> str:
+        """SHA-256 (hex) of the name, code version, :meth:`config` and every parameter and buffer."""
+        h = hashlib.sha256()
+        head = {"name": self.name, "version": self.version, "dim": self.dim, "config": self.config()}
+        h.update(json.dumps(head, sort_keys=True, default=str).encode("utf-8"))
+        for key, tensor in sorted(self.state_dict().items()):
+            t = tensor.detach().cpu().contiguous()
+            h.update(f"{key}:{t.dtype}:{tuple(t.shape)}".encode())
+            h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+        return h.hexdigest()

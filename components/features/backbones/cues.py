@@ -1,0 +1,255 @@
+"""``cues``: interpretable physical weather cues computed from the pixels (no learning, frozen).
+
+What it sees. Each feature is a summary statistic that image-formation physics ties to one or more
+weather parameters (see the renderer's physics in :mod:`components.simulate`), computed on the 128×128 sRGB image
+(other sizes are converted by area interpolation). With ``v`` the sRGB luma (0–1):
+
+- ``brightness`` (15): mean, std and 2/25/50/75/98 % quantiles of ``v`` and an 8-bin histogram —
+  sun altitude, night, cloud dimming, rain darkening.
+- ``haze`` (8): the dark channel (He et al. 2009; per-pixel RGB minimum, ~6×6-pixel minimum filter): its mean
+  over the image and over four row bands, the airlight estimate (99.5 % quantile), the mean
+  transmission ``1 − 0.95·dark/A`` and dark/brightness — Koschmieder fog ``I = J t + A (1 − t)`` lifts
+  the dark channel towards the airlight.
+- ``contrast_row`` (8): local contrast (std/mean in 8×8 blocks) averaged in 8 image-row bands; rows
+  are a depth proxy (horizon far, bottom near), so fog lowers the upper bands more than the lower ones.
+- ``sky`` (10): mean R, G, B, luma, std, blue chromaticity, saturation and vertical gradient of the top
+  30 % of rows (mostly sky), luma and blue chromaticity of the horizon band — sky colour follows sun
+  altitude (Rayleigh), clouds whiten and flatten it, fog replaces it by airlight.
+- ``saturation`` (4): HSV saturation mean and std, upper- and lower-half means — fog, overcast and
+  night desaturate.
+- ``edges`` (18): 8-bin histograms of edge orientation (mod 180°; bin 0 = vertical structures,
+  bins 1–3 and 7–5 = slanted one way or the other) weighted by squared Sobel magnitude, at full
+  resolution and on a high-passed image (thin structures), plus the log mean energies — rain
+  streaks add oriented thin edges whose slant follows the wind; fog and clouds lower the energy.
+- ``lens`` (5): band-pass (difference of box blurs) energies at two scales, fraction of strong
+  band-pass pixels, its kurtosis, fraction of 8×8 blocks much smoother than the image's median block
+  — lens drops are blurred blobs that erase local detail.
+- ``road`` (6): in the lower-centre region (mostly road): mean, std and 98 % quantile of ``v``, fraction
+  brighter than the sky band, saturation, blue chromaticity — puddles mirror the sky and lights.
+- ``colour`` (4): mean chromaticities r and b, log(R/B) of mean linear RGB and of the brightest 2 %
+  pixels (white-patch illuminant estimate) — colour temperature of sun, twilight, lamps.
+- ``lights`` (2): fractions of near-black (``v < 0.05``) and clipped (``v > 0.95``) pixels — night,
+  lamps, headlights.
+
+Why. It is the interpretable end of the backbone comparison: a flow on these 80 numbers can only use
+what physics says is visible, so comparing it with the learned ``cnn`` and the raw ``tiny`` thumbnail
+shows how much a learned representation adds. The region split assumes a forward-looking camera with
+the horizon near mid-image (true for the simulators' pitch of ±2°).
+
+Quantiles come from 256-bin histograms (resolution 1/256, like the 8-bit input). Features are not
+standardised: downstream code should z-score them with training-set statistics. The forward pass
+uses only ONNX-exportable operations (when written, ``torch.onnx.export`` with a dynamic batch
+and onnxruntime agreed with torch to 1e-6; not part of the test suite, the export takes ~20 s).
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import torch
+import torch.nn.functional as F
+
+from components.features.backbones.base import Backbone
+
+__all__ = ["CuesBackbone", "FEATURE_NAMES"]
+
+
+def _names() -> tuple[str, ...]:
+    q = ("q02", "q25", "q50", "q75", "q98")
+    names = ["v_mean", "v_std", *(f"v_{x}" for x in q), *(f"v_hist{i}" for i in range(8))]
+    names += ["dark_mean", *(f"dark_band{i}" for i in range(4)), "airlight", "transmission", "dark_over_v"]
+    names += [f"contrast_row{i}" for i in range(8)]
+    names += ["sky_r", "sky_g", "sky_b", "sky_v", "sky_std", "sky_bchroma", "sky_sat", "sky_gradient"]
+    names += ["horizon_v", "horizon_bchroma"]
+    names += ["sat_mean", "sat_std", "sat_upper", "sat_lower"]
+    names += [f"edge_hist{i}" for i in range(8)] + ["edge_log_energy"]
+    names += [f"fine_edge_hist{i}" for i in range(8)] + ["fine_edge_log_energy"]
+    names += ["bandpass_small", "bandpass_large", "bandpass_strong_frac", "bandpass_log_kurtosis", "smooth_block_frac"]
+    names += ["road_v", "road_std", "road_q98", "road_brighter_than_sky", "road_sat", "road_bchroma"]
+    names += ["chroma_r", "chroma_b", "log_r_over_b", "white_patch_log_r_over_b"]
+    names += ["dark_frac", "clipped_frac"]
+    return tuple(names)
+
+
+#: the name of every feature, in output order
+FEATURE_NAMES: tuple[str, ...] = _names()
+
+_EPS = 1e-6
+
+
+def _srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
+    return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+def _box(x: torch.Tensor, k: int) -> torch.Tensor:
+    """k×k mean filter of (n, 1, H, W) with replicated borders (separable running sums, O(1) per pixel)."""
+    p = k // 2
+    h, w = x.shape[-2:]
+    c = F.pad(F.pad(x, (p, p, 0, 0), mode="replicate"), (1, 0)).cumsum(-1)
+    rows = (c[..., k:] - c[..., :-k])[..., :w] / k
+    c = F.pad(F.pad(rows, (0, 0, p, p), mode="replicate"), (0, 0, 1, 0)).cumsum(-2)
+    return (c[..., k:, :] - c[..., :-k, :])[..., :h, :] / k
+
+
+def _min_filter(x: torch.Tensor, k: int) -> torch.Tensor:
+    """k×k minimum filter of (n, 1, H, W) with replicated borders (separable, shifted minima)."""
+    p = k // 2
+    h, w = x.shape[-2:]
+    q = F.pad(x, (p, p, 0, 0), mode="replicate")
+    rows = q[..., 0:w]
+    for i in range(1, k):
+        rows = torch.minimum(rows, q[..., i : i + w])
+    q = F.pad(rows, (0, 0, p, p), mode="replicate")
+    out = q[..., 0:h, :]
+    for i in range(1, k):
+        out = torch.minimum(out, q[..., i : i + h, :])
+    return out
+
+
+def _histogram(v: torch.Tensor, bins: int) -> torch.Tensor:
+    """Counts of the values of each row of (n, m) in ``bins`` equal bins of [0, 1] → (n, bins)."""
+    idx = torch.clamp((v * bins).long(), 0, bins - 1)
+    return torch.zeros(v.shape[0], bins, dtype=v.dtype, device=v.device).scatter_add_(1, idx, torch.ones_like(v))
+
+
+def _quantiles(counts: torch.Tensor, qs: tuple[float, ...]) -> torch.Tensor:
+    """Quantiles of values in [0, 1] from their (n, bins) histogram (bin centres; 1/bins resolution)."""
+    bins = counts.shape[1]
+    cdf = counts.cumsum(1) / counts.sum(1, keepdim=True)
+    q = torch.tensor(qs, dtype=counts.dtype, device=counts.device)
+    idx = (cdf[:, None, :] < q[None, :, None]).sum(2).clamp(max=bins - 1)  # first bin with cdf ≥ q
+    return (idx.to(counts.dtype) + 0.5) / bins
+
+
+def _orientation_histogram(v: torch.Tensor, bins: int = 8) -> torch.Tensor:
+    """Energy-weighted histogram of edge orientation of (n, 1, H, W) → (n, bins + 1).
+
+    Orientation is that of the Sobel gradient modulo 180°, binned through the doubled angle
+    ``atan2(2 gx gy, gx² − gy²)``; bin ``k`` is centred on ``k·180°/bins``, so vertical structures
+    (rain streaks without wind; horizontal gradient) fall in bin 0 and slanted streaks in bins 1 and
+    ``bins − 1`` by sign of the slant. The histogram sums to 1; the last column is
+    ``log(mean squared gradient magnitude + 1e-6)``.
+    """
+    p = F.pad(v, (1, 1, 1, 1), mode="replicate")[:, 0]
+    dx = p[:, :, 2:] - p[:, :, :-2]  # (n, H+2, W) central differences
+    dy = p[:, 2:, :] - p[:, :-2, :]  # (n, H, W+2)
+    gx = ((dx[:, :-2] + 2 * dx[:, 1:-1] + dx[:, 2:]) * 0.125).flatten(1)  # Sobel
+    gy = ((dy[:, :, :-2] + 2 * dy[:, :, 1:-1] + dy[:, :, 2:]) * 0.125).flatten(1)
+    gxx, gyy = gx * gx, gy * gy
+    energy = gxx + gyy
+    doubled = torch.atan2(2.0 * gx * gy, gxx - gyy)  # (-π, π]
+    idx = (doubled * (bins / (2 * torch.pi)) + (bins + 0.5)).long()  # in [bins/2, 3·bins/2]
+    idx = torch.where(idx >= bins, idx - bins, idx)
+    hist = torch.zeros(energy.shape[0], bins, dtype=energy.dtype, device=energy.device).scatter_add_(1, idx, energy)
+    total = energy.sum(1, keepdim=True)
+    return torch.cat([hist / (total + _EPS), torch.log(energy.mean(1, keepdim=True) + _EPS)], dim=1)
+
+
+class CuesBackbone(Backbone):
+    """Physical weather cues (80 features); frozen, no weights. See the module docstring."""
+
+    name: ClassVar[str] = "cues"
+    version: ClassVar[str] = "1"
+    dim: int = len(FEATURE_NAMES)
+    trainable: bool = False
+    input_size: tuple[int, int] = (128, 128)
+    feature_names: tuple[str, ...] = FEATURE_NAMES
+
+    def config(self) -> dict[str, Any]:
+        return {"input_size": list(self.input_size)}
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → cues ``(n, 80)`` float32 (:data:`FEATURE_NAMES`).
+
+        Region and colour statistics use the 2×2 area-averaged 64×64 image (4× cheaper, same means);
+        contrast, edges and the clipped/dark fractions use full resolution (thin streaks, lamps).
+        """
+        if x.ndim != 4 or x.shape[1] != 3 or x.shape[2] < 16 or x.shape[3] < 16:
+            raise ValueError(f"cues: expected a tensor (n, 3, H, W) with H, W ≥ 16, got shape {tuple(x.shape)}")
+        x = x.float().clamp(0.0, 1.0)
+        n = x.shape[0]
+        v_full = 0.2126 * x[:, 0:1] + 0.7152 * x[:, 1:2] + 0.0722 * x[:, 2:3]  # (n,1,H,W) sRGB luma
+        xs = F.avg_pool2d(x, 2)  # (n,3,H/2,W/2)
+        h, w = xs.shape[-2:]
+        v = 0.2126 * xs[:, 0:1] + 0.7152 * xs[:, 1:2] + 0.0722 * xs[:, 2:3]
+        vf = v.flatten(1)
+        mx, mn = xs.amax(1, keepdim=True), xs.amin(1, keepdim=True)
+        sat = (mx - mn) / (mx + _EPS)
+        bchroma = xs[:, 2:3] / (xs.sum(1, keepdim=True) + _EPS)
+        feats: list[torch.Tensor] = []
+
+        # brightness
+        counts = _histogram(vf, 256)
+        feats += [vf.mean(1, keepdim=True), vf.std(1, keepdim=True), _quantiles(counts, (0.02, 0.25, 0.5, 0.75, 0.98))]
+        feats.append(counts.view(n, 8, 32).sum(2) / vf.shape[1])
+
+        # haze: dark channel (3×3 minimum at half resolution ≈ 6×6 pixels of the input)
+        dark = _min_filter(mn, 3)
+        df = dark.flatten(1)
+        bands = torch.stack([dark[:, 0, i * h // 4 : (i + 1) * h // 4].mean((1, 2)) for i in range(4)], dim=1)
+        airlight = _quantiles(_histogram(df, 256), (0.995,))
+        transmission = (1.0 - 0.95 * df / (airlight + 1e-3)).clamp(0.0, 1.0).mean(1, keepdim=True)
+        feats += [df.mean(1, keepdim=True), bands, airlight, transmission]
+        feats.append(df.mean(1, keepdim=True) / (vf.mean(1, keepdim=True) + 1e-3))
+
+        # contrast as a function of image row (depth proxy), 8×8 blocks at full resolution
+        m1 = F.avg_pool2d(v_full, 8)
+        m2 = F.avg_pool2d(v_full * v_full, 8)
+        local = torch.sqrt((m2 - m1 * m1).clamp_min(0.0)) / (m1 + 0.05)  # (n,1,H/8,W/8)
+        rows = local.shape[2]
+        feats.append(torch.stack([local[:, 0, i * rows // 8 : (i + 1) * rows // 8].mean((1, 2)) for i in range(8)], 1))
+
+        # sky band (top 30 %) and horizon band (30–55 %)
+        s0, s1, s2 = round(0.3 * h), round(0.55 * h), max(1, round(0.1 * h))
+        sky_v = v[:, :, :s0].flatten(1)
+        feats += [xs[:, :, :s0].mean((2, 3)), sky_v.mean(1, keepdim=True), sky_v.std(1, keepdim=True)]
+        feats += [bchroma[:, :, :s0].mean((1, 2, 3))[:, None], sat[:, :, :s0].mean((1, 2, 3))[:, None]]
+        feats.append((v[:, :, :s2].mean((1, 2, 3)) - v[:, :, s0 - s2 : s0].mean((1, 2, 3)))[:, None])
+        feats += [v[:, :, s0:s1].mean((1, 2, 3))[:, None], bchroma[:, :, s0:s1].mean((1, 2, 3))[:, None]]
+
+        # saturation
+        sf = sat.flatten(1)
+        feats += [sf.mean(1, keepdim=True), sf.std(1, keepdim=True)]
+        feats += [sat[:, :, : h // 2].mean((1, 2, 3))[:, None], sat[:, :, h // 2 :].mean((1, 2, 3))[:, None]]
+
+        # oriented edge energy, full and fine scale (full resolution)
+        fine = v_full - _box(v_full, 3)
+        feats.append(_orientation_histogram(v_full))
+        feats.append(_orientation_histogram(fine))
+
+        # lens blobs: band-pass energies (half resolution) and smooth blocks (full resolution)
+        blur3, blur7 = _box(v, 3), _box(v, 7)
+        dog_small, dog_large = (v - blur3).flatten(1), (blur3 - blur7).flatten(1)
+        e2 = (dog_large**2).mean(1, keepdim=True)
+        kurt = (dog_large**4).mean(1, keepdim=True) / (e2 * e2 + 1e-12)
+        block = F.avg_pool2d(fine * fine, 8).flatten(1)
+        median = torch.sort(block, dim=1).values[:, block.shape[1] // 2 : block.shape[1] // 2 + 1]
+        feats += [dog_small.abs().mean(1, keepdim=True), dog_large.abs().mean(1, keepdim=True)]
+        feats += [(dog_large.abs() > 0.02).float().mean(1, keepdim=True), torch.log(kurt + 1.0)]
+        feats.append((block < 0.1 * median + 1e-9).float().mean(1, keepdim=True))
+
+        # road region: lower 35 %, central 60 % of columns
+        r0, c0, c1 = round(0.65 * h), round(0.2 * w), round(0.8 * w)
+        road_v = v[:, 0, r0:, c0:c1].flatten(1)
+        feats += [road_v.mean(1, keepdim=True), road_v.std(1, keepdim=True), _quantiles(_histogram(road_v, 256), (0.98,))]
+        feats.append((road_v > sky_v.mean(1, keepdim=True)).float().mean(1, keepdim=True))
+        feats += [sat[:, 0, r0:, c0:c1].mean((1, 2))[:, None], bchroma[:, 0, r0:, c0:c1].mean((1, 2))[:, None]]
+
+        # colour temperature
+        lin = _srgb_to_linear(xs).flatten(2)  # (n,3,hw)
+        lin_mean = lin.mean(2)
+        chroma = xs.mean((2, 3)) / (xs.mean((2, 3)).sum(1, keepdim=True) + _EPS)
+        feats += [chroma[:, 0:1], chroma[:, 2:3]]
+        feats.append(torch.log((lin_mean[:, 0:1] + 1e-4) / (lin_mean[:, 2:3] + 1e-4)))
+        bright = (vf >= _quantiles(counts, (0.98,)) - 0.5 / 256).to(lin.dtype)[:, None]  # (n,1,hw)
+        white = (lin * bright).sum(2) / bright.sum(2).clamp_min(1.0)
+        feats.append(torch.log((white[:, 0:1] + 1e-4) / (white[:, 2:3] + 1e-4)))
+
+        # light sources and night (full resolution)
+        vff = v_full.flatten(1)
+        feats += [(vff < 0.05).float().mean(1, keepdim=True), (vff > 0.95).float().mean(1, keepdim=True)]
+
+        out = torch.cat(feats, dim=1)
+        if out.shape[1] != self.dim:  # internal consistency of FEATURE_NAMES and the code above
+            raise RuntimeError(f"cues: computed {out.shape[1]} features, FEATURE_NAMES has {self.dim}")
+        return out

@@ -1,0 +1,43 @@
+"""The simulator protocol shared by the procedural renderer and the CARLA backend."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+__all__ = ["Simulator", "make_simulator"]
+
+
+@runtime_checkable
+class Simulator(Protocol):
+    """Renders a front-camera RGB image of a scene under a weather.
+
+    ``weather`` maps CARLA parameter names to floats (:mod:`components.core.weather`); missing fixed
+    parameters take their fixed values, the six predicted ones and the sun azimuth are required.
+    The scene (map/layout, ego vehicle and camera, traffic, pedestrians, static noise fields) depends
+    on ``scene_seed`` only, so the same scene can be re-rendered under other weathers.
+
+    Returns an ``(height, width, 3)`` uint8 RGB array.
+    """
+
+    height: int
+    width: int
+    #: identifies the renderer and its calibration; recorded with every dataset
+    version: str
+
+    def render(self, weather: Mapping[str, float], scene_seed: int) -> np.ndarray: ...
+
+
+def make_simulator(config) -> Simulator:
+    """The simulator a :class:`components.core.config.SimulatorConfig` names (imported lazily)."""
+    if config.backend == "procedural":
+        from components.simulate.procedural.renderer import ProceduralSimulator
+
+        return ProceduralSimulator(config.height, config.width)
+    if config.backend == "carla":
+        from components.simulate.carla import CarlaSimulator
+
+        return CarlaSimulator.from_config(config)
+    raise ValueError(f"unknown simulator backend {config.backend!r}; known: procedural, carla")

@@ -1,0 +1,9 @@
+"""The embedded procedural renderer: physically based front-camera images under CARLA weathers.
+
+Used by the ``generate`` stage (datasets), the ``evaluate`` stage (posterior predictive checks) and ``task2``
+(rendered bags). :class:`ProceduralSimulator` is the entry point; the other modules are its physics.
+"""
+
+from components.simulate.procedural.renderer import ProceduralSimulator
+
+__all__ = ["ProceduralSimulator"]

@@ -12,7 +12,6 @@ Prints a table and one JSON line (``{"benchmark": "backbones", ...}``) with mach
 
 from __future__ import annotations
 
-
 import argparse
 import json
 import sys
@@ -26,9 +25,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from components import seeding  # noqa: E402
-from components.features.backbones import EMBEDDED, PRETRAINED, get_backbone  # noqa: E402
 from machine import machine_info  # benchmarks/machine.py (the script's folder is on sys.path)  # noqa: E402
+
+from components.core import seeding  # noqa: E402
+from components.features.backbones import EMBEDDED, PRETRAINED, get_backbone  # noqa: E402
 
 
 def _images(n: int, seed: int) -> np.ndarray:
@@ -44,16 +44,26 @@ def _tiny_checkpoints(root: Path, seed: int) -> None:
     from transformers.models.clip.image_processing_pil_clip import CLIPImageProcessorPil
     from transformers.models.convnext.image_processing_pil_convnext import ConvNextImageProcessorPil
 
-    vit = dict(hidden_size=32, num_hidden_layers=2, num_attention_heads=2, intermediate_size=64, image_size=32, patch_size=8)
+    vit = dict(
+        hidden_size=32, num_hidden_layers=2, num_attention_heads=2, intermediate_size=64, image_size=32, patch_size=8
+    )
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seeding.derive_seed(seed, "benchmark", "checkpoints"))
         made = {
-            "resnet50": (transformers.ResNetModel(transformers.ResNetConfig(embedding_size=8, hidden_sizes=[8, 16], depths=[1, 1])),
-                         ConvNextImageProcessorPil(size={"shortest_edge": 32})),
-            "dinov2": (transformers.Dinov2Model(transformers.Dinov2Config(**vit)),
-                       BitImageProcessorPil(size={"shortest_edge": 36}, crop_size={"height": 32, "width": 32})),
-            "clip": (transformers.CLIPVisionModel(transformers.CLIPVisionConfig(**vit)),
-                     CLIPImageProcessorPil(size={"shortest_edge": 32}, crop_size={"height": 32, "width": 32})),
+            "resnet50": (
+                transformers.ResNetModel(
+                    transformers.ResNetConfig(embedding_size=8, hidden_sizes=[8, 16], depths=[1, 1])
+                ),
+                ConvNextImageProcessorPil(size={"shortest_edge": 32}),
+            ),
+            "dinov2": (
+                transformers.Dinov2Model(transformers.Dinov2Config(**vit)),
+                BitImageProcessorPil(size={"shortest_edge": 36}, crop_size={"height": 32, "width": 32}),
+            ),
+            "clip": (
+                transformers.CLIPVisionModel(transformers.CLIPVisionConfig(**vit)),
+                CLIPImageProcessorPil(size={"shortest_edge": 32}, crop_size={"height": 32, "width": 32}),
+            ),
         }
     for name, (model, processor) in made.items():
         model.save_pretrained(root / name)
@@ -93,10 +103,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=2, help="torch.set_num_threads (default 2)")
     ap.add_argument("--repeats", type=int, default=3, help="timed repeats; the best is reported (default 3)")
     ap.add_argument("--seed", type=int, default=2026)
-    ap.add_argument("--backbones", nargs="*", default=None,
-                    help=f"subset of {[*EMBEDDED, 'cnn-train', *PRETRAINED]} (default all)")
-    ap.add_argument("--pretrained-dir", default=None,
-                    help="time real pretrained weights from this folder instead of tiny random checkpoints")
+    ap.add_argument(
+        "--backbones", nargs="*", default=None, help=f"subset of {[*EMBEDDED, 'cnn-train', *PRETRAINED]} (default all)"
+    )
+    ap.add_argument(
+        "--pretrained-dir",
+        default=None,
+        help="time real pretrained weights from this folder instead of tiny random checkpoints",
+    )
     args = ap.parse_args(argv)
     if args.n < 1 or args.threads < 1 or args.repeats < 1 or args.batch_size < 1 or args.train_batch < 1:
         ap.error("--n, --threads, --repeats, --batch-size and --train-batch must be positive")
@@ -130,9 +144,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'backbone':<10} {'dim':>5} {'images/s':>10}  measured")
     for name, r in results.items():
         print(f"{name:<10} {r['dim']:>5} {r['images_per_s']:>10.0f}  {r['what']}")
-    record = {"benchmark": "backbones", "n": args.n, "image_size": [128, 128], "batch_size": args.batch_size,
-              "train_batch": args.train_batch, "results": {k: round(v["images_per_s"], 1) for k, v in results.items()},
-              "machine": machine_info(torch_threads=args.threads)}
+    record = {
+        "benchmark": "backbones",
+        "n": args.n,
+        "image_size": [128, 128],
+        "batch_size": args.batch_size,
+        "train_batch": args.train_batch,
+        "results": {k: round(v["images_per_s"], 1) for k, v in results.items()},
+        "machine": machine_info(torch_threads=args.threads),
+    }
     print(json.dumps(record))
     return 0
 

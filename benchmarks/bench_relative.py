@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from components import seeding  # noqa: E402
+from components.core import seeding  # noqa: E402
 from components.domains.absolute import Domain, mixture_of  # noqa: E402
 from components.domains.relative import SimplexLeastSquares, relate  # noqa: E402
 
@@ -98,14 +98,24 @@ def main() -> None:
     ratio_relate = best["relate_rebuilt_s"] / best["relate_reused_s"]
     ratio_solve = best["solve_rebuilt_s"] / best["solve_reused_s"]
     print(f"rebuilt / reused: relate ×{ratio_relate:.2f}, solve ×{ratio_solve:.2f}  (n = {n} solves, n_W = 16, K = 3)")
-    print(json.dumps({
-        "benchmark": "relative", "n_solves": n, "n_points": 16, "n_sources": 3, "solver": "CLARABEL",
-        **{k: round(v, 4) for k, v in best.items()},
-        "ratio_relate_rebuilt_over_reused": round(ratio_relate, 3),
-        "ratio_solve_rebuilt_over_reused": round(ratio_solve, 3),
-        "python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count(),
-        "load_avg_1min": round(os.getloadavg()[0], 2),
-    }))
+    print(
+        json.dumps(
+            {
+                "benchmark": "relative",
+                "n_solves": n,
+                "n_points": 16,
+                "n_sources": 3,
+                "solver": "CLARABEL",
+                **{k: round(v, 4) for k, v in best.items()},
+                "ratio_relate_rebuilt_over_reused": round(ratio_relate, 3),
+                "ratio_solve_rebuilt_over_reused": round(ratio_solve, 3),
+                "python": platform.python_version(),
+                "machine": platform.machine(),
+                "cpus": os.cpu_count(),
+                "load_avg_1min": round(os.getloadavg()[0], 2),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

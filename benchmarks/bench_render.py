@@ -21,15 +21,15 @@ import time
 import cv2
 import numpy as np
 
-from components.simulate import ProceduralSimulator
 from components.core.weather import Box, sample_azimuth, weather_from_theta
+from components.simulate.procedural import ProceduralSimulator
 
 
 def _weathers(n: int, seed: int) -> list[dict[str, float]]:
     rng = np.random.default_rng(seed)
     theta = Box.full().sample(rng, n)
     az = sample_azimuth(rng, n)
-    return [weather_from_theta(t, a) for t, a in zip(theta, az)]
+    return [weather_from_theta(t, a) for t, a in zip(theta, az, strict=False)]
 
 
 def _rate(fn, n: int) -> tuple[float, float]:
@@ -57,7 +57,11 @@ def bench(size: int, n: int, per_scene: int, seed: int) -> dict[str, tuple[float
         for i, w in enumerate(ws):
             sim.render(w, 100_000 + i // per_scene)
 
-    return {"cached_scene": _rate(cached, n), "fresh_scene": _rate(fresh, n), f"{per_scene}_per_scene": _rate(dataset, n)}
+    return {
+        "cached_scene": _rate(cached, n),
+        "fresh_scene": _rate(fresh, n),
+        f"{per_scene}_per_scene": _rate(dataset, n),
+    }
 
 
 def main() -> None:
@@ -74,14 +78,18 @@ def main() -> None:
     for size in args.sizes:
         r = bench(size, args.images, args.per_scene, args.seed)
         results[f"{size}x{size}"] = r
-        print(f"{size}x{size}: " + ", ".join(f"{k} {v[0]:6.1f} img/s wall ({v[1]:6.1f} per CPU-s)" for k, v in r.items()),
-              flush=True)
+        print(
+            f"{size}x{size}: " + ", ".join(f"{k} {v[0]:6.1f} img/s wall ({v[1]:6.1f} per CPU-s)" for k, v in r.items()),
+            flush=True,
+        )
     info = {
         "benchmark": "render",
         "version": ProceduralSimulator().version,
         "images": args.images,
         "per_scene": args.per_scene,
-        "results_images_per_s_per_core": {k: {s: {"wall": v[0], "cpu": v[1]} for s, v in r.items()} for k, r in results.items()},
+        "results_images_per_s_per_core": {
+            k: {s: {"wall": v[0], "cpu": v[1]} for s, v in r.items()} for k, r in results.items()
+        },
         "machine": {
             "python": platform.python_version(),
             "numpy": np.__version__,

@@ -15,7 +15,6 @@ one JSON line (``{"benchmark": "runtime", ...}``) with machine information.
 
 from __future__ import annotations
 
-
 import argparse
 import json
 import statistics
@@ -26,17 +25,17 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import onnxruntime
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from components import seeding  # noqa: E402
-from components.export.onnx import EXPORTERS, export_posterior  # noqa: E402
-from components.posterior.store import load_npe  # noqa: E402
-from components.export.runtime import OnnxPosterior  # noqa: E402
 from machine import machine_info  # benchmarks/machine.py (the script's folder is on sys.path)  # noqa: E402
+
+from components.core import seeding  # noqa: E402
+from components.export.onnx import EXPORTERS, export_posterior  # noqa: E402
+from components.export.runtime import OnnxPosterior  # noqa: E402
+from components.posterior.store import load_npe  # noqa: E402
 
 
 def _inputs(path: Path | None, model, count: int, seed: int) -> tuple[np.ndarray, str]:
@@ -65,7 +64,9 @@ def _latency(calls: dict[str, Callable[[np.ndarray], object]], x: np.ndarray) ->
     return {name: statistics.median(ts) for name, ts in times.items()}
 
 
-def _throughput(calls: dict[str, Callable[[np.ndarray], object]], x: np.ndarray, batch: int, repeats: int) -> dict[str, float]:
+def _throughput(
+    calls: dict[str, Callable[[np.ndarray], object]], x: np.ndarray, batch: int, repeats: int
+) -> dict[str, float]:
     """Best images per second per engine over ``repeats`` passes over ``x`` in batches of ``batch`` (engines alternate)."""
     best = {name: 0.0 for name in calls}
     for call in calls.values():
@@ -131,7 +132,9 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(args.threads)
     model, header = load_npe(args.model)
     if model.embedding is not None and not isinstance(model.embedding, torch.nn.Identity):
-        raise SystemExit(f"{args.model}: this benchmark times feature models (frozen backbones); got a trainable embedding")
+        raise SystemExit(
+            f"{args.model}: this benchmark times feature models (frozen backbones); got a trainable embedding"
+        )
     features = args.features
     if features is None:
         features = ROOT / "features" / header["backbone"] / "test" / "shard-00000.npy"
@@ -167,8 +170,10 @@ def main(argv: list[str] | None = None) -> dict:
     peak = dense_peak_flops(args.threads)
     draws = onnx_row["images_per_s"] * args.samples
     bound = peak / flops
-    print(f"sampling: {draws:,.0f} draws/s on onnxruntime; {flops / 1e3:.1f} kFLOP per draw; dense float32 peak "
-          f"{peak / 1e9:.1f} GFLOP/s → bound {bound:,.0f} draws/s; achieved {draws / bound:.0%} of the bound")
+    print(
+        f"sampling: {draws:,.0f} draws/s on onnxruntime; {flops / 1e3:.1f} kFLOP per draw; dense float32 peak "
+        f"{peak / 1e9:.1f} GFLOP/s → bound {bound:,.0f} draws/s; achieved {draws / bound:.0%} of the bound"
+    )
     record = {
         "benchmark": "runtime",
         "model": str(args.model),

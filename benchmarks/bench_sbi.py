@@ -89,12 +89,14 @@ from torch import Tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from components.core import config
-from components.simulate import dataset
+from components.core import (
+    config,
+    seeding,
+    weather,  # noqa: E402
+)
 from components.features import cache as features
-from components.core import seeding
-from components import weather  # noqa: E402
 from components.posterior import NPE, FlowConfig, TrainingConfig, npe_loss, train  # noqa: E402
+from components.simulate import dataset
 
 SETUP_HINT = (
     "run this script with the sbi environment: .venv-sbi/bin/python benchmarks/bench_sbi.py "
@@ -155,9 +157,12 @@ def load_data(data_root: Path, features_root: Path, backbone: str, n_train: int)
     box.check(th_tr, what="train θ")
     box.check(th_va, what="val θ")
     return Data(
-        torch.as_tensor(x_tr, dtype=torch.float32), torch.as_tensor(th_tr, dtype=torch.float64),
-        torch.as_tensor(x_va, dtype=torch.float32), torch.as_tensor(th_va, dtype=torch.float64),
-        box, backbone,
+        torch.as_tensor(x_tr, dtype=torch.float32),
+        torch.as_tensor(th_tr, dtype=torch.float64),
+        torch.as_tensor(x_va, dtype=torch.float32),
+        torch.as_tensor(th_va, dtype=torch.float64),
+        box,
+        backbone,
     )
 
 
@@ -170,7 +175,9 @@ def pidc_model(data: Data, seed: int) -> NPE:
 
 
 def sbi_prior(box: weather.Box) -> BoxUniform:
-    return BoxUniform(torch.tensor(np.array(box.low), dtype=torch.float32), torch.tensor(np.array(box.high), dtype=torch.float32))
+    return BoxUniform(
+        torch.tensor(np.array(box.low), dtype=torch.float32), torch.tensor(np.array(box.high), dtype=torch.float32)
+    )
 
 
 def sbi_builder(box: weather.Box, theta_transform: str) -> Callable[[Tensor, Tensor], Any]:
@@ -178,8 +185,13 @@ def sbi_builder(box: weather.Box, theta_transform: str) -> Callable[[Tensor, Ten
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Unknown kwargs passed to ConditionalFlowConfig")
         return posterior_nn(
-            model="zuko_nsf", z_score_theta=theta_transform, z_score_x="independent",
-            hidden_features=list(HIDDEN), num_transforms=TRANSFORMS, num_bins=BINS, passes=PASSES,
+            model="zuko_nsf",
+            z_score_theta=theta_transform,
+            z_score_x="independent",
+            hidden_features=list(HIDDEN),
+            num_transforms=TRANSFORMS,
+            num_bins=BINS,
+            passes=PASSES,
             x_dist=sbi_prior(box),
         )
 
@@ -230,7 +242,11 @@ class HookedNPE(SbiNPE):
 def pidc_nll(model: NPE, x: Tensor, theta: Tensor) -> float:
     """Mean −log q(θ | x) over the set, nats, physical units."""
     model.eval()
-    return float(-torch.cat([model.log_prob(t, xb) for xb, t in zip(x.split(2048), theta.split(2048))]).double().mean())
+    return float(
+        -torch.cat([model.log_prob(t, xb) for xb, t in zip(x.split(2048), theta.split(2048), strict=False)])
+        .double()
+        .mean()
+    )
 
 
 @torch.no_grad()
@@ -245,7 +261,7 @@ def sbi_log_prob(net: Any, x: Tensor, theta: Tensor) -> Tensor:
 
 
 def sbi_nll(net: Any, x: Tensor, theta: Tensor) -> float:
-    lp = torch.cat([sbi_log_prob(net, xb, t) for xb, t in zip(x.split(2048), theta.split(2048))])
+    lp = torch.cat([sbi_log_prob(net, xb, t) for xb, t in zip(x.split(2048), theta.split(2048), strict=False)])
     return float(-lp.double().mean())
 
 
@@ -325,7 +341,7 @@ class Run:
 
     def time_to(self, target: float) -> tuple[float | None, int | None]:
         """Wall seconds and epochs (1-based) until the val NLL first is ≤ target; ``(None, None)`` if never."""
-        for k, (t, v) in enumerate(zip(self.times, self.val_nll)):
+        for k, (t, v) in enumerate(zip(self.times, self.val_nll, strict=False)):
             if v <= target:
                 return t, k + 1
         return None, None
@@ -335,8 +351,14 @@ def run_pidc(data: Data, args: argparse.Namespace) -> tuple[Run, NPE]:
     p = config.load_params().train
     model = pidc_model(data, args.seed)
     tc = TrainingConfig(
-        epochs=args.epochs, batch_size=BATCH, lr=LR, weight_decay=p.weight_decay, schedule=p.schedule,
-        patience=args.epochs, clip_norm=CLIP, seed=args.seed,
+        epochs=args.epochs,
+        batch_size=BATCH,
+        lr=LR,
+        weight_decay=p.weight_decay,
+        schedule=p.schedule,
+        patience=args.epochs,
+        clip_norm=CLIP,
+        seed=args.seed,
     )
     run = Run("pidc", samples_per_epoch=len(data.x_train))
     t0 = time.perf_counter()
@@ -345,8 +367,9 @@ def run_pidc(data: Data, args: argparse.Namespace) -> tuple[Run, NPE]:
         run.times.append(time.perf_counter() - t0)
         run.val_nll.append(rec.val_nll)
 
-    history = train(model, (data.x_train, data.theta_train), (data.x_val, data.theta_val), tc,
-                    progress=False, callback=record)
+    history = train(
+        model, (data.x_train, data.theta_train), (data.x_val, data.theta_val), tc, progress=False, callback=record
+    )
     run.returned_epoch = history.best_epoch + 1
     run.final_nll = run.final_nll_leak_corrected = pidc_nll(model, data.x_val, data.theta_val)
     return run, model
@@ -370,14 +393,23 @@ def run_sbi(data: Data, theta_transform: str, args: argparse.Namespace) -> tuple
     with torch.random.fork_rng(devices=[]), warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Maximum number of epochs")
         torch.manual_seed(seeding.derive_seed(args.seed, "bench", "sbi", "sbi", theta_transform))
-        inference = HookedNPE(on_epoch, prior=sbi_prior(data.box), density_estimator=sbi_builder(data.box, theta_transform),
-                              tracker=tracker, show_progress_bars=False)
+        inference = HookedNPE(
+            on_epoch,
+            prior=sbi_prior(data.box),
+            density_estimator=sbi_builder(data.box, theta_transform),
+            tracker=tracker,
+            show_progress_bars=False,
+        )
         t0 = time.perf_counter()
         inference.append_simulations(data.theta_train.to(torch.float32), data.x_train)
         # sbi's loop runs while epoch <= max_num_epochs: max_num_epochs = E − 1 gives E epochs
         net = inference.train(
-            training_batch_size=BATCH, learning_rate=LR, validation_fraction=args.sbi_validation_fraction,
-            stop_after_epochs=args.epochs + 1, max_num_epochs=args.epochs - 1, clip_max_norm=CLIP,
+            training_batch_size=BATCH,
+            learning_rate=LR,
+            validation_fraction=args.sbi_validation_fraction,
+            stop_after_epochs=args.epochs + 1,
+            max_num_epochs=args.epochs - 1,
+            clip_max_norm=CLIP,
         )
     print()
     if len(run.times) != args.epochs:
@@ -406,7 +438,7 @@ def step_throughput(data: Data, theta_transform: str, args: argparse.Namespace) 
 
     def pidc_pass() -> None:
         model.train()
-        for xb, tb in zip(xs, ths):
+        for xb, tb in zip(xs, ths, strict=False):
             loss = npe_loss(model, tb, xb).loss
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -415,7 +447,7 @@ def step_throughput(data: Data, theta_transform: str, args: argparse.Namespace) 
 
     def sbi_pass() -> None:
         net.train()
-        for xb, tb in zip(xs, ths32):
+        for xb, tb in zip(xs, ths32, strict=False):
             loss = net.loss(tb, xb).mean()
             sopt.zero_grad(set_to_none=True)
             loss.backward()
@@ -423,7 +455,7 @@ def step_throughput(data: Data, theta_transform: str, args: argparse.Namespace) 
             sopt.step()
 
     best = {"pidc": math.inf, "sbi": math.inf}
-    for fn, key in ((pidc_pass, "pidc"), (sbi_pass, "sbi")):
+    for fn in (pidc_pass, sbi_pass):
         fn()  # warm-up
     for _ in range(3):  # interleaved, so that a load change hits both
         for fn, key in ((pidc_pass, "pidc"), (sbi_pass, "sbi")):
@@ -456,22 +488,37 @@ def print_table(pidc: Run, sbis: list[Run], target: float, target_epoch: int) ->
     rows = []
     for r in [pidc, *sbis]:
         t, e = r.time_to(target)
-        rows.append({
-            "library": r.name, "step_samples_per_s": r.step_samples_per_s, "loop_samples_per_s": r.loop_samples_per_s,
-            "epoch_s": r.times[-1] / len(r.times), "median_epoch_s": r.median_epoch_s, "time_to_target_s": t, "epochs_to_target": e,
-            "best_epoch_val_nll": min(r.val_nll), "last_epoch_val_nll": r.val_nll[-1], "returned_epoch": r.returned_epoch,
-            "final_val_nll": r.final_nll, "final_val_nll_leak_corrected": r.final_nll_leak_corrected,
-            "mean_log_mass_in_box": r.mean_log_mass_in_box, "total_s": r.times[-1],
-        })
+        rows.append(
+            {
+                "library": r.name,
+                "step_samples_per_s": r.step_samples_per_s,
+                "loop_samples_per_s": r.loop_samples_per_s,
+                "epoch_s": r.times[-1] / len(r.times),
+                "median_epoch_s": r.median_epoch_s,
+                "time_to_target_s": t,
+                "epochs_to_target": e,
+                "best_epoch_val_nll": min(r.val_nll),
+                "last_epoch_val_nll": r.val_nll[-1],
+                "returned_epoch": r.returned_epoch,
+                "final_val_nll": r.final_nll,
+                "final_val_nll_leak_corrected": r.final_nll_leak_corrected,
+                "mean_log_mass_in_box": r.mean_log_mass_in_box,
+                "total_s": r.times[-1],
+            }
+        )
     print(f"\ntarget val NLL = {target:.3f} nats (pidc after {target_epoch} epochs); val NLL in nats, physical units")
-    head = (f"{'library':<32} {'step smp/s':>10} {'loop smp/s':>10} {'s/epoch':>8} {'med s/ep':>8} {'t→target s':>10} {'ep→tgt':>6} "
-            f"{'best NLL':>9} {'last NLL':>9} {'ret ep':>6} {'final NLL':>9} {'final+leak':>10}")
+    head = (
+        f"{'library':<32} {'step smp/s':>10} {'loop smp/s':>10} {'s/epoch':>8} {'med s/ep':>8} {'t→target s':>10} {'ep→tgt':>6} "
+        f"{'best NLL':>9} {'last NLL':>9} {'ret ep':>6} {'final NLL':>9} {'final+leak':>10}"
+    )
     print(head)
     for d in rows:
-        print(f"{d['library']:<32} {fmt(d['step_samples_per_s'], ',.0f'):>10} {fmt(d['loop_samples_per_s'], ',.0f'):>10} "
-              f"{d['epoch_s']:>8.2f} {d['median_epoch_s']:>8.2f} {fmt(d['time_to_target_s'], '.1f'):>10} {fmt(d['epochs_to_target'], 'd'):>6} "
-              f"{d['best_epoch_val_nll']:>9.3f} {d['last_epoch_val_nll']:>9.3f} {d['returned_epoch']:>6d} "
-              f"{d['final_val_nll']:>9.3f} {d['final_val_nll_leak_corrected']:>10.3f}")
+        print(
+            f"{d['library']:<32} {fmt(d['step_samples_per_s'], ',.0f'):>10} {fmt(d['loop_samples_per_s'], ',.0f'):>10} "
+            f"{d['epoch_s']:>8.2f} {d['median_epoch_s']:>8.2f} {fmt(d['time_to_target_s'], '.1f'):>10} {fmt(d['epochs_to_target'], 'd'):>6} "
+            f"{d['best_epoch_val_nll']:>9.3f} {d['last_epoch_val_nll']:>9.3f} {d['returned_epoch']:>6d} "
+            f"{d['final_val_nll']:>9.3f} {d['final_val_nll_leak_corrected']:>10.3f}"
+        )
     base = rows[0]
     for d in rows[1:]:
         d["ratios_sbi_over_pidc"] = {
@@ -482,10 +529,12 @@ def print_table(pidc: Run, sbis: list[Run], target: float, target_epoch: int) ->
             "median_epoch_s": ratio(d["median_epoch_s"], base["median_epoch_s"]),
         }
         q = d["ratios_sbi_over_pidc"]
-        print(f"{'ratio ' + d['library'] + ' / pidc':<32} {fmt(q['step_samples_per_s'], '.2f'):>10} "
-              f"{fmt(q['loop_samples_per_s'], '.2f'):>10} {fmt(q['epoch_s'], '.2f'):>8} {fmt(q['median_epoch_s'], '.2f'):>8} "
-              f"{fmt(q['time_to_target_s'], '.2f'):>10}"
-              f"   (samples/s: >1 = sbi faster; times: >1 = sbi slower)")
+        print(
+            f"{'ratio ' + d['library'] + ' / pidc':<32} {fmt(q['step_samples_per_s'], '.2f'):>10} "
+            f"{fmt(q['loop_samples_per_s'], '.2f'):>10} {fmt(q['epoch_s'], '.2f'):>8} {fmt(q['median_epoch_s'], '.2f'):>8} "
+            f"{fmt(q['time_to_target_s'], '.2f'):>10}"
+            f"   (samples/s: >1 = sbi faster; times: >1 = sbi slower)"
+        )
         d["final_val_nll_difference_sbi_minus_pidc"] = d["final_val_nll_leak_corrected"] - base["final_val_nll"]
     return rows
 
@@ -497,8 +546,13 @@ def main() -> None:
     p.add_argument("--n-train", type=int, default=10_000)
     p.add_argument("--epochs", type=int, default=60, help="fixed epoch budget of both libraries")
     p.add_argument("--target-epoch", type=int, default=20, help="target NLL = pidc's val NLL after this many epochs")
-    p.add_argument("--sbi-theta", nargs="+", default=["independent"],
-                   choices=["independent", "transform_to_unconstrained"], help="sbi's z_score_theta variants to run")
+    p.add_argument(
+        "--sbi-theta",
+        nargs="+",
+        default=["independent"],
+        choices=["independent", "transform_to_unconstrained"],
+        help="sbi's z_score_theta variants to run",
+    )
     p.add_argument("--sbi-validation-fraction", type=float, default=0.1)
     p.add_argument("--leak-samples", type=int, default=128, help="draws per val x for sbi's leakage correction")
     p.add_argument("--step-batches", type=int, default=20, help="batches per pass of the step-throughput measure")
@@ -527,8 +581,10 @@ def main() -> None:
     if args.step_batches * BATCH > len(data.x_train):
         p.error(f"--step-batches × {BATCH} must not exceed --n-train ({args.n_train})")
     load_start = wait_for_load(args.wait_load, args.max_wait)
-    print(f"data: {len(data.x_train)} train, {len(data.x_val)} val, {data.x_train.shape[1]}-dim {args.backbone!r} "
-          f"features; load {load_start:.2f}")
+    print(
+        f"data: {len(data.x_train)} train, {len(data.x_val)} val, {data.x_train.shape[1]}-dim {args.backbone!r} "
+        f"features; load {load_start:.2f}"
+    )
     wall0 = time.perf_counter()
 
     step = {v: step_throughput(data, v, args) for v in args.sbi_theta}
@@ -545,32 +601,60 @@ def main() -> None:
         sbis.append(r)
         nets.append(net)
 
-    print(f"units check: ∫_S q dθ by uniform MC of the density vs the fraction of q's draws in S (should agree)")
+    print("units check: ∫_S q dθ by uniform MC of the density vs the fraction of q's draws in S (should agree)")
     checks = []
     for i in range(args.units_x):
         x1 = data.x_val[i : i + 1]
         draws = model.sample(x1, 4000, rng=seeding.derive_seed(args.seed, "bench", "sbi", "draws", i))[0]
-        got = units_check(lambda t: model.log_prob(t.unsqueeze(0), x1)[0], draws, data.box, 50_000, args.seed + i)
+        got = units_check(
+            lambda t, x1=x1: model.log_prob(t.unsqueeze(0), x1)[0], draws, data.box, 50_000, args.seed + i
+        )
         checks.append({"library": "pidc", "x": i, "density_integral": got[0], "sample_mass": got[1]})
-        for r, net in zip(sbis, nets):
+        for r, net in zip(sbis, nets, strict=False):
             d = sbi_samples(net, x1, 4000, seeding.derive_seed(args.seed, "bench", "sbi", "draws", i))[0]
-            got = units_check(lambda t: sbi_log_prob(net, x1.expand(len(t), -1), t), d, data.box, 50_000, args.seed + i)
+            got = units_check(
+                lambda t, net=net, x1=x1: sbi_log_prob(net, x1.expand(len(t), -1), t),
+                d,
+                data.box,
+                50_000,
+                args.seed + i,
+            )
             checks.append({"library": r.name, "x": i, "density_integral": got[0], "sample_mass": got[1]})
     for c in checks:
-        print(f"  {c['library']:<32} x#{c['x']}: density ∫ {c['density_integral']:.3f}   draws' mass {c['sample_mass']:.3f}")
+        print(
+            f"  {c['library']:<32} x#{c['x']}: density ∫ {c['density_integral']:.3f}   draws' mass {c['sample_mass']:.3f}"
+        )
 
     rows = print_table(pidc, sbis, target, args.target_epoch)
     machine = {
-        "python": platform.python_version(), "torch": torch.__version__, "sbi": sbi.__version__,
-        "zuko": zuko.__version__, "cpu": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
-        "threads": torch.get_num_threads(), "load_avg_1m_start": round(load_start, 2),
-        "load_avg_1m_end": round(os.getloadavg()[0], 2), "wall_s": round(time.perf_counter() - wall0, 1),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "sbi": sbi.__version__,
+        "zuko": zuko.__version__,
+        "cpu": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "threads": torch.get_num_threads(),
+        "load_avg_1m_start": round(load_start, 2),
+        "load_avg_1m_end": round(os.getloadavg()[0], 2),
+        "wall_s": round(time.perf_counter() - wall0, 1),
     }
-    curves = {r.name: {"time_s": [round(t, 3) for t in r.times], "val_nll": [round(v, 4) for v in r.val_nll]}
-              for r in [pidc, *sbis]}
-    print(json.dumps({"benchmark": "npe_vs_sbi", "settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
-                      "machine": machine, "target_val_nll": target, "results": rows, "units_check": checks,
-                      "curves": curves}))
+    curves = {
+        r.name: {"time_s": [round(t, 3) for t in r.times], "val_nll": [round(v, 4) for v in r.val_nll]}
+        for r in [pidc, *sbis]
+    }
+    print(
+        json.dumps(
+            {
+                "benchmark": "npe_vs_sbi",
+                "settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+                "machine": machine,
+                "target_val_nll": target,
+                "results": rows,
+                "units_check": checks,
+                "curves": curves,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """The Task III sweep on the project's registry model: 330 experiments (11 η × 30) and the ODD calibration.
 
-Builds the sweep exactly as the ``task3`` stage does (:func:`flows.task3.build_sweep`: the bags' contexts computed
+Builds the sweep exactly as the ``task3`` stage does (:func:`components.domains.task3.build_sweep`: the bags' contexts computed
 once, then every experiment = a target drawn and related to the three sources with n_W points, CVXPY solve, chance
 baseline) and times (a) the contexts, (b) the calibration targets, (c) the 330 experiments. Needs the pipeline's
 registry/ and features/ (``dvc repro evaluate`` at least).
@@ -22,10 +22,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import yaml  # noqa: E402
+from machine import machine_info  # noqa: E402
 
 from components.core.config import load_params  # noqa: E402
-from flows.task3 import build_sweep  # noqa: E402
-from machine import machine_info  # noqa: E402
+from components.core.paths import ProjectPaths  # noqa: E402
+from components.domains.task3 import build_sweep  # noqa: E402
 
 
 def main() -> None:
@@ -43,7 +44,7 @@ def main() -> None:
         params = load_params(params_file)
         t = params.task3
         t0 = time.perf_counter()
-        sweep, members, model = build_sweep(params_file)
+        sweep, members, model = build_sweep(params, ProjectPaths.of(params, params_file))
         t_build = time.perf_counter() - t0
         t0 = time.perf_counter()
         sweep.calibrate(t.calibration_targets, t.false_alarm_rate, params.seed, fresh=t.fresh_targets)
@@ -69,9 +70,21 @@ def main() -> None:
     if "fresh" in timed:
         print(f"| sweep, fresh targets ({n} experiments) | {timed['fresh']:.2f} |")
     print(f"| per experiment (paper) | {1000 * t_sweep / n:.1f} ms |")
-    print(json.dumps({"benchmark": "task3", "model": model, "bags": sweep.sizes, "experiments": n,
-                      "contexts_s": t_build, "calibration_s": t_cal, "sweep_s": t_sweep,
-                      "fresh_sweep_s": timed.get("fresh"), **machine_info()}))
+    print(
+        json.dumps(
+            {
+                "benchmark": "task3",
+                "model": model,
+                "bags": sweep.sizes,
+                "experiments": n,
+                "contexts_s": t_build,
+                "calibration_s": t_cal,
+                "sweep_s": t_sweep,
+                "fresh_sweep_s": timed.get("fresh"),
+                **machine_info(),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

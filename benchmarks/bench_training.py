@@ -16,8 +16,7 @@ import time
 
 import torch
 
-from components.core import seeding
-from components.core import weather
+from components.core import seeding, weather
 from components.posterior.loss import npe_loss
 from components.posterior.model import NPE, FlowConfig
 
@@ -45,7 +44,7 @@ def bench(features: int, args: argparse.Namespace) -> dict[str, float]:
     x, theta = synthetic(args.batch_size * args.steps, features, 0)
     model.fit_standardization(x)
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
-    batches = list(zip(torch.split(x, args.batch_size), torch.split(theta, args.batch_size)))
+    batches = list(zip(torch.split(x, args.batch_size), torch.split(theta, args.batch_size), strict=False))
 
     def epoch() -> None:
         for xb, tb in batches:
@@ -84,7 +83,9 @@ def main() -> None:
     rows = [bench(f, args) for f in (64, 128)]
     print(f"{'features':>8} {'train samples/s':>16} {'log_prob θ/s':>14} {'sample θ/s':>12}")
     for r in rows:
-        print(f"{r['features']:>8} {r['train_samples_per_s']:>16,.0f} {r['log_prob_per_s']:>14,.0f} {r['sample_per_s']:>12,.0f}")
+        print(
+            f"{r['features']:>8} {r['train_samples_per_s']:>16,.0f} {r['log_prob_per_s']:>14,.0f} {r['sample_per_s']:>12,.0f}"
+        )
     machine = {
         "python": platform.python_version(),
         "torch": torch.__version__,
@@ -94,8 +95,18 @@ def main() -> None:
         "load_avg_1m": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
     }
     settings = {k: v for k, v in vars(args).items()}
-    print(json.dumps({"benchmark": "posterior_training", "settings": settings, "machine": machine,
-                      "results": [{k: (int(v) if k == "features" else round(float(v), 1)) for k, v in r.items()} for r in rows]}))
+    print(
+        json.dumps(
+            {
+                "benchmark": "posterior_training",
+                "settings": settings,
+                "machine": machine,
+                "results": [
+                    {k: (int(v) if k == "features" else round(float(v), 1)) for k, v in r.items()} for r in rows
+                ],
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

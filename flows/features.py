@@ -6,39 +6,17 @@ shard; shards whose cached output matches the current data and backbone are skip
 
 from __future__ import annotations
 
-import argparse
 import functools
 import json
 from pathlib import Path
 
-from prefect import flow, get_run_logger, task
+from prefect import flow, task
 
-from components.simulate import dataset
 from components.features import cache as features
-from components.core import seeding
 from components.features.backbones import Backbone, get_backbone
-from components.core.config import PROJECT_ROOT, Params, load_params
-from flows.generate import data_root
-from flows.runtime import share_api_with_workers, task_runner, wait_with_progress
-
-
-def backbone_options(name: str, params: Params, params_path: Path) -> dict:
-    """The options of backbone ``name`` from the params: pretrained weights folder, CNN seed."""
-    from components.features.backbones import PRETRAINED
-
-    if name in PRETRAINED:
-        opts: dict = {}
-        if params.backbones.pretrained_dir:
-            d = Path(params.backbones.pretrained_dir)
-            opts["pretrained_dir"] = str(d if d.is_absolute() else params_path.resolve().parent / d)
-        return opts
-    if name == "cnn":
-        return {"seed": seeding.derive_seed(params.seed, "backbone", name) % (2**31)}
-    return {}
-
-
-def features_root(params_path: Path) -> Path:
-    return params_path.resolve().parent / "features"
+from components.features.options import backbone_options
+from components.simulate import dataset
+from flows.stage import open_stage, parse_stage_args, share_api_with_workers, task_runner, wait_with_progress
 
 
 @functools.lru_cache(maxsize=4)
@@ -59,47 +37,75 @@ def shard_task(name: str, options_json: str, data: str, split_name: str, k: int,
     backbone = _backbone(name, options_json)
     split = _split(data, split_name)
     values = features.backbone_output(backbone, split.shard_images(k), batch_size)
-    features.write_shard_features(features.FeatureStore(Path(out), name), split, k, values, features.output_fingerprint(backbone))
+    features.write_shard_features(
+        features.FeatureStore(Path(out), name), split, k, values, features.output_fingerprint(backbone)
+    )
     return len(values)
 
 
 @flow(name="features", log_prints=True)
 def extract_features(backbone_name: str, params_path: str) -> dict:
     """Cache the output of one backbone for the train, val and test splits."""
-    logger = get_run_logger()
-    params_file = Path(params_path)
-    params = load_params(params_file)
+    stage = open_stage(params_path)
+    params, logger = stage.params, stage.logger
     if backbone_name not in params.backbones.names:
-        raise ValueError(f"backbone {backbone_name!r} is not in backbones.names of {params_file} ({', '.join(params.backbones.names)})")
-    options = backbone_options(backbone_name, params, params_file)
-    backbone = _backbone(backbone_name, json.dumps(options, sort_keys=True))  # fails fast: unknown name, missing weights
+        raise ValueError(
+            f"backbone {backbone_name!r} is not in backbones.names of {stage.params_file} "
+            f"({', '.join(params.backbones.names)})"
+        )
+    options = backbone_options(backbone_name, params, stage.paths.root)
+    backbone = _backbone(
+        backbone_name, json.dumps(options, sort_keys=True)
+    )  # fails fast: unknown name, missing weights
     fingerprint = features.output_fingerprint(backbone)
-    root = data_root(params, params_file)
+    root = stage.paths.data
     splits = [dataset.open_split(root, s, verify=True) for s in dataset.SPLITS]
-    store = features.FeatureStore(features_root(params_file), backbone_name)
+    store = features.FeatureStore(stage.paths.features, backbone_name)
 
-    todo = [(s.name, k) for s in splits for k in range(len(s.shard_files)) if not features.shard_features_done(store, s, k, fingerprint)]
-    logger.info("backbone %s (%s, fingerprint %s): %d shards to compute", backbone_name,
-                "trainable: caching its input" if backbone.trainable else f"frozen, dim {backbone.dim}", fingerprint[:12], len(todo))
+    todo = [
+        (s.name, k)
+        for s in splits
+        for k in range(len(s.shard_files))
+        if not features.shard_features_done(store, s, k, fingerprint)
+    ]
+    logger.info(
+        "backbone %s (%s, fingerprint %s): %d shards to compute",
+        backbone_name,
+        "trainable: caching its input" if backbone.trainable else f"frozen, dim {backbone.dim}",
+        fingerprint[:12],
+        len(todo),
+    )
     share_api_with_workers()
     futures = [
-        shard_task.submit(backbone_name, json.dumps(options, sort_keys=True), str(root), s, k, str(store.root), params.backbones.batch_size)
+        shard_task.submit(
+            backbone_name,
+            json.dumps(options, sort_keys=True),
+            str(root),
+            s,
+            k,
+            str(store.root),
+            params.backbones.batch_size,
+        )
         for s, k in todo
     ]
     wait_with_progress(futures, desc=f"features@{backbone_name}")
     manifest = features.write_features_manifest(
-        store, splits, fingerprint=fingerprint, kind="inputs" if backbone.trainable else "features", config=backbone.config()
+        store,
+        splits,
+        fingerprint=fingerprint,
+        kind="inputs" if backbone.trainable else "features",
+        config=backbone.config(),
     )
     logger.info("features@%s: %s", backbone_name, {k: v["count"] for k, v in manifest["splits"].items()})
     return manifest
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description="Cache a backbone's output for every dataset shard (the features stage).")
-    parser.add_argument("--backbone", required=True, help="a name from backbones.names")
-    parser.add_argument("--params", type=Path, default=PROJECT_ROOT / "params.yaml")
-    args = parser.parse_args(argv)
-    params = load_params(args.params)
+    args, params = parse_stage_args(
+        "Cache a backbone's output for every dataset shard (the features stage).",
+        argv,
+        [(["--backbone"], {"required": True, "help": "a name from backbones.names"})],
+    )
     extract_features.with_options(task_runner=task_runner(params.data.runner))(args.backbone, str(args.params))
 
 

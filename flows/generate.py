@@ -8,15 +8,14 @@ from __future__ import annotations
 
 import functools
 import time
-from pathlib import Path
 
-from prefect import flow, get_run_logger, task
+from prefect import flow, task
 
-from components.simulate import dataset
 from components.core import seeding
-from components.core.config import Params, SimulatorConfig, load_params
+from components.core.config import Params, SimulatorConfig
+from components.simulate import dataset
 from components.simulate.base import make_simulator
-from flows.runtime import params_from_argv, share_api_with_workers, task_runner, wait_with_progress
+from flows.stage import open_stage, parse_stage_args, share_api_with_workers, task_runner, wait_with_progress
 
 
 @functools.lru_cache(maxsize=2)
@@ -28,12 +27,6 @@ def _simulator(cfg: SimulatorConfig):
 @task(name="render-shard", retries=0)
 def render_shard(rows: dataset.ShardRows, sim_cfg: SimulatorConfig, root: str) -> dict:
     return dataset.render_shard(rows, _simulator(sim_cfg), root)
-
-
-def data_root(params: Params, params_path: Path) -> Path:
-    """The data folder: ``data.root``, relative to the params file's folder."""
-    root = Path(params.data.root)
-    return root if root.is_absolute() else params_path.resolve().parent / root
 
 
 def plans(params: Params, renderer_version: str) -> list[dataset.SplitPlan]:
@@ -57,10 +50,8 @@ def plans(params: Params, renderer_version: str) -> list[dataset.SplitPlan]:
 @flow(name="generate", log_prints=True)
 def generate(params_path: str) -> dict:
     """Render every unfinished shard, then write the manifest and the contact sheet."""
-    logger = get_run_logger()
-    params_file = Path(params_path)
-    params = load_params(params_file)
-    root = data_root(params, params_file)
+    stage = open_stage(params_path)
+    params, logger, root = stage.params, stage.logger, stage.paths.data
     simulator = _simulator(params.simulator)
     split_plans = plans(params, simulator.version)
 
@@ -98,18 +89,20 @@ def generate(params_path: str) -> dict:
 
     sheet_seeds = [seeding.derive_seed(params.seed, "contact_sheet", j) for j in range(params.contact_sheet.scenes)]
     sheet = contact_sheet(simulator, sheet_seeds, params.contact_sheet.steps)
-    sheet_path = Path(params.contact_sheet.path)
-    if not sheet_path.is_absolute():
-        sheet_path = params_file.resolve().parent / sheet_path
+    sheet_path = stage.paths.resolve(params.contact_sheet.path)
     save_png(sheet_path, sheet)
-    logger.info("dataset %s: %s; contact sheet %s", manifest["content_hash"][:12],
-                {k: v["count"] for k, v in manifest["splits"].items()}, sheet_path)
+    logger.info(
+        "dataset %s: %s; contact sheet %s",
+        manifest["content_hash"][:12],
+        {k: v["count"] for k, v in manifest["splits"].items()},
+        sheet_path,
+    )
     return manifest
 
 
 def main(argv: list[str] | None = None) -> None:
-    params, path = params_from_argv("Render the simulated dataset (the generate stage).", argv)
-    generate.with_options(task_runner=task_runner(params.data.runner))(str(path))
+    args, params = parse_stage_args("Render the simulated dataset (the generate stage).", argv)
+    generate.with_options(task_runner=task_runner(params.data.runner))(str(args.params))
 
 
 if __name__ == "__main__":

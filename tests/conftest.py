@@ -38,16 +38,28 @@ def micro_params(**overrides) -> dict:
     p["data"]["runner"].update(kind="threads", workers=2)
     p["contact_sheet"].update(steps=3, scenes=1)
     p["train"]["sizes"] = [8, 16, 24]
-    p["train"]["variants"] = {"balanced": {"backbone": "cues", "size": 16, "balance": 10.0}}
+    p["train"]["variants"] = {"balanced": {"backbone": "cues", "size": 16, "balance": 10.0, "ensemble": 1}}
     p["evaluate"].update(images=8, samples=400, ppc_images=1, ppc_renders=2, example_images=1)
     p["task2"].update(images=16, images_per_scene=4, samples=200)
-    p["task3"].update(bags={  # wide sub-boxes: the micro test split is small
-        "b0": {"box": {"sun_altitude_angle": [-90, -10]}, "max_images": 8},
-        "b1": {"box": {"sun_altitude_angle": [0, 90], "cloudiness": [0, 50]}, "max_images": 3},
-        "b2": {"box": {"sun_altitude_angle": [0, 90], "cloudiness": [50, 100], "precipitation": [0, 50]}, "max_images": 2},
-        "b3": {"box": {"sun_altitude_angle": [0, 90], "cloudiness": [50, 100], "precipitation": [50, 100]},
-               "max_images": 2},
-    }, etas=[0.0, 0.5, 1.0], repetitions=3, n_points=8, calibration_targets=20, false_alarm_rate=0.1)
+    p["task3"].update(
+        bags={  # wide sub-boxes: the micro test split is small
+            "b0": {"box": {"sun_altitude_angle": [-90, -10]}, "max_images": 8},
+            "b1": {"box": {"sun_altitude_angle": [0, 90], "cloudiness": [0, 50]}, "max_images": 3},
+            "b2": {
+                "box": {"sun_altitude_angle": [0, 90], "cloudiness": [50, 100], "precipitation": [0, 50]},
+                "max_images": 2,
+            },
+            "b3": {
+                "box": {"sun_altitude_angle": [0, 90], "cloudiness": [50, 100], "precipitation": [50, 100]},
+                "max_images": 2,
+            },
+        },
+        etas=[0.0, 0.5, 1.0],
+        repetitions=3,
+        n_points=8,
+        calibration_targets=20,
+        false_alarm_rate=0.1,
+    )
     for key, value in overrides.items():
         section, _, name = key.partition(".")
         if name:
@@ -80,8 +92,13 @@ def prefect_server(tmp_path_factory):
     env = dict(os.environ, PREFECT_HOME=str(home), PREFECT_SERVER_ANALYTICS_ENABLED="false")
     env.pop("PREFECT_API_URL", None)
     log = open(home / "server.log", "wb")
-    proc = subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port", str(port)],
-                            env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port", str(port)],
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
     url = f"http://127.0.0.1:{port}/api"
     try:
         deadline = time.monotonic() + 120
@@ -103,10 +120,69 @@ def prefect_server(tmp_path_factory):
         log.close()
 
 
-FAST_TRAINING = {"train.epochs": 2, "train.embedding_epochs": 1, "train.sizes": [8, 24],
-                 "train.variants": {"ensemble": {"backbone": "cues", "size": 24, "ensemble": 2}},
-                 "backbones": {"names": ["cues", "cnn"], "pretrained_dir": None, "batch_size": 256},
-                 "train.flow": {"transforms": 1, "hidden_features": [16], "bins": 4, "passes": 2, "ensemble": 1}}
+IMAGENET_MEAN, IMAGENET_STD = [0.485, 0.456, 0.406], [0.229, 0.224, 0.225]
+
+
+def _tiny_checkpoint(name: str, folder: Path, seed: int) -> None:
+    """A randomly initialised tiny model of ``name``'s architecture + its image processor, saved."""
+    import torch
+    import transformers
+    from transformers.models.bit.image_processing_pil_bit import BitImageProcessorPil
+    from transformers.models.clip.image_processing_pil_clip import CLIPImageProcessorPil
+    from transformers.models.convnext.image_processing_pil_convnext import ConvNextImageProcessorPil
+
+    vit = dict(
+        hidden_size=32, num_hidden_layers=2, num_attention_heads=2, intermediate_size=64, image_size=32, patch_size=8
+    )
+    with torch.random.fork_rng(devices=[]):  # weights drawn from a seeded stream, global RNG untouched
+        torch.manual_seed(seed)
+        if name == "resnet50":
+            model = transformers.ResNetModel(
+                transformers.ResNetConfig(embedding_size=8, hidden_sizes=[8, 16], depths=[1, 1])
+            )
+            processor = ConvNextImageProcessorPil(
+                size={"shortest_edge": 32}, crop_pct=0.875, image_mean=IMAGENET_MEAN, image_std=IMAGENET_STD
+            )
+        elif name == "dinov2":
+            model = transformers.Dinov2Model(transformers.Dinov2Config(**vit))
+            processor = BitImageProcessorPil(
+                size={"shortest_edge": 36},
+                crop_size={"height": 32, "width": 32},
+                image_mean=IMAGENET_MEAN,
+                image_std=IMAGENET_STD,
+            )
+        elif name == "clip":
+            model = transformers.CLIPVisionModel(transformers.CLIPVisionConfig(**vit))
+            processor = CLIPImageProcessorPil(size={"shortest_edge": 32}, crop_size={"height": 32, "width": 32})
+        else:
+            raise ValueError(f"no tiny checkpoint for {name!r}; pretrained backbones: resnet50, dinov2, clip")
+    model.save_pretrained(folder)
+    processor.save_pretrained(folder)
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint():
+    """``tiny_checkpoint(name, folder, seed)`` saves a tiny randomly initialised (seeded) checkpoint of pretrained
+    backbone ``name``'s architecture (ResNet / DINOv2 / CLIP, 32×32 input) with its image processor into ``folder``,
+    loadable through the real path (``get_backbone(name, path=folder)``). Same seed, same weights."""
+    return _tiny_checkpoint
+
+
+FAST_TRAINING = {
+    "train.epochs": 2,
+    "train.embedding_epochs": 1,
+    "train.sizes": [8, 24],
+    "train.variants": {"ensemble": {"backbone": "cues", "size": 24, "balance": 0.0, "ensemble": 2}},
+    "backbones": {"names": ["cues", "cnn"], "pretrained_dir": None, "batch_size": 256},
+    "train.flow": {
+        "transforms": 1,
+        "hidden_features": [16],
+        "bins": 4,
+        "passes": 2,
+        "ensemble": 1,
+        "standardize": True,
+    },
+}
 
 
 def run_in(cmd, cwd, env: dict | None = None, timeout: float = 600, **kw) -> subprocess.CompletedProcess:
@@ -130,7 +206,7 @@ def micro_project(tmp_path_factory, prefect_server) -> Path:
     its Prefect flow against the session's Prefect server. Shared: read it, or change a `copy_project` of it."""
     repo = tmp_path_factory.mktemp("micro-project") / "repo"
     repo.mkdir()
-    for name in ("components", "flows"):
+    for name in ("components", "flows", "profiles"):  # profiles/: a dependency of the stages (params `profile`)
         shutil.copytree(PROJECT_ROOT / name, repo / name, ignore=shutil.ignore_patterns("__pycache__"))
     for name in ("dvc.yaml", "prefect.yaml"):
         if (PROJECT_ROOT / name).is_file():

@@ -11,11 +11,18 @@ import torch
 from components.core import seeding
 from components.features.backbones import EMBEDDED, PRETRAINED, Backbone, available, get_backbone
 from components.features.backbones.cues import FEATURE_NAMES
-from components.simulate import ProceduralSimulator
+from components.simulate.procedural import ProceduralSimulator
 
 SEED = 2026
-CLEAR = dict(cloudiness=20.0, fog_density=0.0, precipitation=0.0, sun_altitude_angle=45.0,
-             wind_intensity=0.0, precipitation_deposits=0.0, sun_azimuth_angle=100.0)
+CLEAR = dict(
+    cloudiness=20.0,
+    fog_density=0.0,
+    precipitation=0.0,
+    sun_altitude_angle=45.0,
+    wind_intensity=0.0,
+    precipitation_deposits=0.0,
+    sun_azimuth_angle=100.0,
+)
 
 
 def _quiet(name: str, **options) -> Backbone:
@@ -208,7 +215,7 @@ def test_tiny_fingerprint_depends_on_grid() -> None:
 # -- cnn ------------------------------------------------------------------------------------------------
 def test_cnn_seeded_init() -> None:
     a, b, c = (get_backbone("cnn", seed=s) for s in (3, 3, 4))
-    for (k, ta), tb in zip(a.state_dict().items(), b.state_dict().values()):
+    for (k, ta), tb in zip(a.state_dict().items(), b.state_dict().values(), strict=False):
         torch.testing.assert_close(ta, tb, rtol=0, atol=0, msg=k)
     assert a.fingerprint() == b.fingerprint() != c.fingerprint()
     assert not torch.equal(a.head.weight, c.head.weight)

@@ -19,6 +19,7 @@ import pytest
 
 from components.core import seeding
 from components.core.config import CarlaConfig, SimulatorConfig
+from components.core.weather import ALL_NAMES, FIXED, NUISANCE, PARAMETERS, PREDICTED
 from components.simulate.base import Simulator
 from components.simulate.carla import (
     CarlaConnectionError,
@@ -31,7 +32,6 @@ from components.simulate.carla import (
     synchronous_settings,
     weather_parameters,
 )
-from components.core.weather import ALL_NAMES, FIXED, NUISANCE, PARAMETERS, PREDICTED
 
 TIMEOUT_S = 1.5
 #: wall-clock slack allowed on top of the timeout (a loaded 2-core machine)
@@ -296,7 +296,9 @@ class FakeCarlaServer:
 
 @pytest.fixture
 def fake_carla() -> Iterator[FakeCarlaServer]:
-    server = FakeCarlaServer(importlib.metadata.version("carla"), ["/Game/Carla/Maps/Town01", "/Game/Carla/Maps/Town03"])
+    server = FakeCarlaServer(
+        importlib.metadata.version("carla"), ["/Game/Carla/Maps/Town01", "/Game/Carla/Maps/Town03"]
+    )
     yield server
     server.close()
 
@@ -406,6 +408,7 @@ def test_from_config_carries_every_setting() -> None:
             traffic_manager_port=8123,
             max_vehicles=4,
             max_pedestrians=2,
+            fov=75.0,
         ),
     )
     sim = CarlaSimulator.from_config(cfg)
@@ -413,7 +416,7 @@ def test_from_config_carries_every_setting() -> None:
     assert (sim.timeout_s, sim.fixed_delta_seconds, sim.settle_ticks) == (4.0, 0.1, 7)
     assert (sim.traffic_manager_port, sim.max_vehicles, sim.max_pedestrians) == (8123, 4, 2)
     assert sim.maps == ("Town01", "Town03")
-    assert sim.fov == 90.0
+    assert sim.fov == 75.0
 
 
 def test_version_before_connecting_is_the_client_version() -> None:
@@ -482,16 +485,28 @@ WALKERS = [f"walker.pedestrian.{i:04d}" for i in range(1, 15)]
 def _plan(seed: int, **kw):  # noqa: ANN202
     args = dict(maps=MAPS, vehicle_blueprints=VEHICLES, walker_blueprints=WALKERS, n_spawn_points=120)
     args.update(kw)
-    return plan_scene(seed, args.pop("maps"), args.pop("vehicle_blueprints"), args.pop("walker_blueprints"),
-                      args.pop("n_spawn_points"), ego_blueprints=args.pop("ego_blueprints", EGOS), **args)
+    return plan_scene(
+        seed,
+        args.pop("maps"),
+        args.pop("vehicle_blueprints"),
+        args.pop("walker_blueprints"),
+        args.pop("n_spawn_points"),
+        ego_blueprints=args.pop("ego_blueprints", EGOS),
+        **args,
+    )
 
 
 def test_plan_is_a_deterministic_function_of_the_scene_seed() -> None:
     plans = [_plan(s) for s in range(40)]
     assert plans == [_plan(s) for s in range(40)]
     # the order of the server's lists does not matter
-    shuffled = _plan(7, maps=MAPS[::-1], vehicle_blueprints=VEHICLES[::-1], walker_blueprints=WALKERS[::-1],
-                     ego_blueprints=EGOS[::-1])
+    shuffled = _plan(
+        7,
+        maps=MAPS[::-1],
+        vehicle_blueprints=VEHICLES[::-1],
+        walker_blueprints=WALKERS[::-1],
+        ego_blueprints=EGOS[::-1],
+    )
     assert shuffled == plans[7]
     # different seeds give different scenes
     assert len({(p.map_name, p.ego_spawn_index, p.vehicle_spawn_indices, p.walker_blueprints) for p in plans}) == 40
@@ -536,7 +551,12 @@ def test_plan_streams_are_independent() -> None:
         a, b = _plan(seed, max_pedestrians=10), _plan(seed, max_pedestrians=0)
         assert b.n_pedestrians == 0
         assert (a.map_name, a.ego_blueprint, a.ego_spawn_index, a.vehicle_blueprints, a.vehicle_spawn_indices) == (
-            b.map_name, b.ego_blueprint, b.ego_spawn_index, b.vehicle_blueprints, b.vehicle_spawn_indices)
+            b.map_name,
+            b.ego_blueprint,
+            b.ego_spawn_index,
+            b.vehicle_blueprints,
+            b.vehicle_spawn_indices,
+        )
 
 
 def test_plan_without_traffic() -> None:

@@ -20,10 +20,28 @@ def test_presets_are_valid_weathers():
 
 def test_render_writes_the_simulators_image(tmp_path):
     out = tmp_path / "fog.png"
-    assert main(["render", "--preset", "foggy_morning", "--set", "fog_density=70", "--seed", "3",
-                 "--height", "48", "--width", "64", "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "--preset",
+                "foggy_morning",
+                "--set",
+                "fog_density=70",
+                "--seed",
+                "3",
+                "--height",
+                "48",
+                "--width",
+                "64",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     png = cv2.cvtColor(cv2.imread(str(out), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-    from components.simulate import ProceduralSimulator
+    from components.simulate.procedural import ProceduralSimulator
 
     expected = ProceduralSimulator(48, 64).render(PRESETS["foggy_morning"] | {"fog_density": 70}, 3)
     np.testing.assert_array_equal(png, expected)
@@ -34,8 +52,10 @@ def test_render_writes_the_simulators_image(tmp_path):
     [
         (["render", "--preset", "clear_noon"], "--seed is required"),
         (["render", "--preset", "clear_noon", "--seed", "-2"], "--seed must be a non-negative integer"),
-        (["render", "--preset", "clear_noon", "--seed", "1", "--set", "fog_density=140"],
-         r"'fog_density' = 140 is outside its range \[0, 100\] %"),
+        (
+            ["render", "--preset", "clear_noon", "--seed", "1", "--set", "fog_density=140"],
+            r"'fog_density' = 140 is outside its range \[0, 100\] %",
+        ),
         (["render", "--seed", "1", "--set", "fog_density=10"], "weather is missing 'cloudiness'"),
         (["render", "--preset", "clear_noon", "--seed", "1", "--set", "fog=10"], "unknown weather parameter 'fog'"),
         (["render", "--preset", "clear_noon", "--seed", "1", "--set", "fog_density"], "--set expects NAME=VALUE"),
@@ -53,6 +73,8 @@ def test_bad_input_is_one_clear_line(args, message, capsys, tmp_path):
 
 
 def test_console_script_lists_weather():
-    r = subprocess.run([sys.executable, "-m", "components.cli.main", "weather"], capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, "-m", "components.cli.main", "weather"], capture_output=True, text=True, timeout=60
+    )
     assert r.returncode == 0
     assert "sun_altitude_angle" in r.stdout and "[-90, 90] deg" in r.stdout and "clear_noon" in r.stdout

@@ -20,11 +20,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from components.core import seeding
-from components.core import weather
 from components.cli.main import main
-from components.export.lookup import CHAMPION_POINTER
+from components.core import seeding, weather
 from components.evaluate.summary import hdi
+from components.export.lookup import CHAMPION_POINTER
 
 BOX = weather.Box.full()
 NAMES = BOX.names
@@ -40,7 +39,7 @@ NIGHT = ([0, 80, 0, -90, 0, 0], [20, 100, 10, -40, 30, 10])
 
 def render_folder(folder: Path, box: tuple[list[float], list[float]], n: int, seed: int, prefix: str = "") -> Path:
     """n PNGs of 32×32 at weathers uniform in ``box`` (distinct scenes)."""
-    from components.simulate import ProceduralSimulator
+    from components.simulate.procedural import ProceduralSimulator
 
     sim = ProceduralSimulator(32, 32)
     folder.mkdir(parents=True, exist_ok=True)
@@ -55,26 +54,37 @@ def render_folder(folder: Path, box: tuple[list[float], list[float]], n: int, se
 @pytest.fixture(scope="module")
 def world(tmp_path_factory) -> dict[str, Path]:
     """A registry with model ``cues-tiny`` (the champion) and folders of images."""
-    from components.features.backbones import get_backbone
     from components.export.onnx import export_posterior
+    from components.features.backbones import get_backbone
     from components.features.cache import posterior_inputs
     from components.posterior import NPE, FlowConfig, TrainingConfig, train
-    from components.simulate import ProceduralSimulator
+    from components.simulate.procedural import ProceduralSimulator
 
     root = tmp_path_factory.mktemp("cli-registry")
     r = seeding.rng(0, "test", "cli-registry")
     n = 288
     theta, azimuth = BOX.sample(r, n), weather.sample_azimuth(r, n)
     sim = ProceduralSimulator(32, 32)
-    images = np.stack([sim.render(weather.weather_from_theta(t, a), i) for i, (t, a) in enumerate(zip(theta, azimuth))])
+    images = np.stack(
+        [sim.render(weather.weather_from_theta(t, a), i) for i, (t, a) in enumerate(zip(theta, azimuth, strict=False))]
+    )
     with pytest.warns(UserWarning, match="converting 32×32 images to its input size"):
         x = posterior_inputs(get_backbone("cues"), images)
     model = NPE(None, x.shape[1], BOX, FlowConfig(transforms=1, hidden_features=(64,), bins=6), seed=0)
-    train(model, (x[:256], theta[:256]), (x[256:], theta[256:]), TrainingConfig(epochs=12, batch_size=32, lr=3e-3),
-          progress=False)
+    train(
+        model,
+        (x[:256], theta[:256]),
+        (x[256:], theta[256:]),
+        TrainingConfig(epochs=12, batch_size=32, lr=3e-3),
+        progress=False,
+    )
     registry = root / "registry"
-    export_posterior(model, registry / "cues-tiny", exporter="torchscript",
-                     card={"model_id": "cues-tiny", "backbone": "cues", "backbone_options": {}, "size": 256})
+    export_posterior(
+        model,
+        registry / "cues-tiny",
+        exporter="torchscript",
+        card={"model_id": "cues-tiny", "backbone": "cues", "backbone_options": {}, "size": 256},
+    )
     champion = registry.parent / CHAMPION_POINTER  # <project>/reports/task1/champion.json
     champion.parent.mkdir(parents=True)
     champion.write_text(json.dumps({"model": "cues-tiny", "metric": "calibration_error"}))
@@ -136,17 +146,32 @@ def check_rows(rows: dict[str, dict[str, float]]) -> None:
 
 def test_characterize_a_folder_with_bad_images(world, capsys, tmp_path):
     csv_path = tmp_path / "draws.csv"
-    code, out, err = run(capsys, "characterize", world["mixed"], "--registry", world["registry"], "--model",
-                         "cues-tiny", "--samples", 300, "--seed", 5, "--samples-out", csv_path)
+    code, out, err = run(
+        capsys,
+        "characterize",
+        world["mixed"],
+        "--registry",
+        world["registry"],
+        "--model",
+        "cues-tiny",
+        "--samples",
+        300,
+        "--seed",
+        5,
+        "--samples-out",
+        csv_path,
+    )
     assert code == 0
     blocks = parse_blocks(out)
     good = [str(world["mixed"] / n) for n in ("000.png", "001.png", "002.jpg")]
     assert list(blocks) == good
     assert "note: not square (48×32 pixels)" in blocks[good[2]][0]
     errors = [line for line in err.splitlines() if line.startswith("pidc characterize: skipped")]
-    assert errors == [f"pidc characterize: skipped {world['mixed'] / 'empty.png'}: empty file (0 bytes)",
-                      f"pidc characterize: skipped {world['mixed'] / 'notimage.png'}: not an image file, or a format "
-                      "Pillow cannot read (cannot identify image file)"]
+    assert errors == [
+        f"pidc characterize: skipped {world['mixed'] / 'empty.png'}: empty file (0 bytes)",
+        f"pidc characterize: skipped {world['mixed'] / 'notimage.png'}: not an image file, or a format "
+        "Pillow cannot read (cannot identify image file)",
+    ]
     assert "characterized 3 images with cues-tiny (300 draws each, seed 5); skipped 2" in err
     # the draws file holds exactly the draws the table summarizes
     import pandas as pd
@@ -163,10 +188,35 @@ def test_characterize_a_folder_with_bad_images(world, capsys, tmp_path):
             assert rows[name]["median"] == pytest.approx(np.median(draws[name]), abs=0.006)
             assert (rows[name]["low"], rows[name]["high"]) == pytest.approx((low[j], high[j]), abs=0.006)
     # same seed, same numbers; another seed, other draws
-    assert run(capsys, "characterize", world["mixed"] / "000.png", "--registry", world["registry"], "--model",
-               "cues-tiny", "--samples", 300, "--seed", 5)[1] == out.split("\n\n")[0] + "\n\n"
-    other = run(capsys, "characterize", world["mixed"] / "000.png", "--registry", world["registry"], "--model",
-                "cues-tiny", "--samples", 300, "--seed", 6)[1]
+    assert (
+        run(
+            capsys,
+            "characterize",
+            world["mixed"] / "000.png",
+            "--registry",
+            world["registry"],
+            "--model",
+            "cues-tiny",
+            "--samples",
+            300,
+            "--seed",
+            5,
+        )[1]
+        == out.split("\n\n")[0] + "\n\n"
+    )
+    other = run(
+        capsys,
+        "characterize",
+        world["mixed"] / "000.png",
+        "--registry",
+        world["registry"],
+        "--model",
+        "cues-tiny",
+        "--samples",
+        300,
+        "--seed",
+        6,
+    )[1]
     assert other != out.split("\n\n")[0] + "\n\n"
 
 
@@ -174,8 +224,21 @@ def test_characterize_writes_parquet_and_one_corner_plot_per_image(world, capsys
     pq = pytest.importorskip("pyarrow.parquet")
     images = [world["clear"] / "000.png", world["night"] / "000.png"]
     out_file = tmp_path / "out" / "draws.parquet"
-    code, out, _ = run(capsys, "characterize", *images, "--registry", world["registry"], "--model", "cues-tiny",
-                       "--samples", 200, "--samples-out", out_file, "--corner", tmp_path / "corner.png")
+    code, out, _ = run(
+        capsys,
+        "characterize",
+        *images,
+        "--registry",
+        world["registry"],
+        "--model",
+        "cues-tiny",
+        "--samples",
+        200,
+        "--samples-out",
+        out_file,
+        "--corner",
+        tmp_path / "corner.png",
+    )
     assert code == 0 and len(parse_blocks(out)) == 2
     table = pq.read_table(out_file)
     assert table.column_names == ["image", "draw", *NAMES] and table.num_rows == 400
@@ -191,16 +254,33 @@ def test_characterize_writes_parquet_and_one_corner_plot_per_image(world, capsys
 
 
 def test_characterize_with_the_champion_on_one_image_writes_the_named_corner(world, capsys, tmp_path):
-    code, out, _ = run(capsys, "characterize", world["night"] / "001.png", "--registry", world["registry"],
-                       "--samples", 100, "--corner", tmp_path / "one.png")
+    code, out, _ = run(
+        capsys,
+        "characterize",
+        world["night"] / "001.png",
+        "--registry",
+        world["registry"],
+        "--samples",
+        100,
+        "--corner",
+        tmp_path / "one.png",
+    )
     assert code == 0 and len(parse_blocks(out)) == 1
     assert [p.name for p in tmp_path.iterdir()] == ["one.png"]
 
 
 def test_characterize_when_no_image_is_readable(world, capsys, tmp_path):
-    code, out, err = run(capsys, "characterize", world["mixed"] / "empty.png", world["mixed"] / "notimage.png",
-                         world["mixed"] / "missing.png", "--registry", world["registry"],
-                         "--samples-out", tmp_path / "d.csv")
+    code, out, err = run(
+        capsys,
+        "characterize",
+        world["mixed"] / "empty.png",
+        world["mixed"] / "notimage.png",
+        world["mixed"] / "missing.png",
+        "--registry",
+        world["registry"],
+        "--samples-out",
+        tmp_path / "d.csv",
+    )
     assert code == 2 and out == ""
     assert err.count("skipped") == 3 and f"{world['mixed'] / 'missing.png'}: no such file" in err
     assert err.strip().splitlines()[-1] == "pidc characterize: error: none of the 3 images could be read"
@@ -253,8 +333,9 @@ def test_domain_with_equal_weights_a_weights_file_and_a_decaying_stream(world, c
 )
 def test_domain_weights_file_errors(world, capsys, tmp_path, content, message):
     (tmp_path / "w.csv").write_text(content)
-    code, out, err = run(capsys, "domain", world["mix"], "--registry", world["registry"], "--weights",
-                         tmp_path / "w.csv")
+    code, out, err = run(
+        capsys, "domain", world["mix"], "--registry", world["registry"], "--weights", tmp_path / "w.csv"
+    )
     assert code == 2 and out == ""
     assert len(err.strip().splitlines()) == 1 and re.search(message, err), err
 
@@ -304,26 +385,40 @@ def test_relate_gives_weights_gaps_and_a_calibrated_verdict(world, capsys):
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["characterize", "{mixed}", "--registry", "{root}/elsewhere/registry"],
-         r"elsewhere/reports/task1/champion\.json: no champion yet"),
-        (["characterize", "{mixed}", "--registry", "{registry}", "--model", "cues-9"],
-         r"no exported model 'cues-9' in .*registry \(known: cues-tiny"),
+        (
+            ["characterize", "{mixed}", "--registry", "{root}/elsewhere/registry"],
+            r"elsewhere/reports/task1/champion\.json: no champion yet",
+        ),
+        (
+            ["characterize", "{mixed}", "--registry", "{registry}", "--model", "cues-9"],
+            r"no exported model 'cues-9' in .*registry \(known: cues-tiny",
+        ),
         (["characterize", "{root}/empty", "--registry", "{registry}"], r"empty: no image files in this folder"),
         (["characterize", "{mixed}", "--registry", "{registry}", "--samples", "0"], "--samples must be a positive"),
-        (["characterize", "{mixed}", "--registry", "{registry}", "--samples-out", "{root}/d.txt"],
-         r"--samples-out .*d\.txt: unknown draws file type '\.txt'; use \.csv or \.parquet"),
-        (["characterize", "{mixed}", "--registry", "{registry}", "--corner", "{root}/c.xyz"],
-         r"--corner .*c\.xyz: unknown image type '\.xyz'"),
+        (
+            ["characterize", "{mixed}", "--registry", "{registry}", "--samples-out", "{root}/d.txt"],
+            r"--samples-out .*d\.txt: unknown draws file type '\.txt'; use \.csv or \.parquet",
+        ),
+        (
+            ["characterize", "{mixed}", "--registry", "{registry}", "--corner", "{root}/c.xyz"],
+            r"--corner .*c\.xyz: unknown image type '\.xyz'",
+        ),
         (["domain", "{root}/empty", "--registry", "{registry}"], r"empty: no image files in this folder"),
         (["domain", "{mixed}/000.png", "--registry", "{registry}"], r"000\.png: not a folder"),
         (["domain", "{mix}", "--registry", "{registry}", "--decay", "1.5"], r"--decay must be in \(0, 1\]"),
         (["domain", "{mix}", "--registry", "{registry}", "--weights", "{root}/none.csv"], r"none\.csv: no such"),
-        (["relate", "{mix}", "{clear}", "{overcast}", "--registry", "{registry}", "--points", "1"],
-         r"--points 1 cannot determine 2 mixture weights"),
-        (["relate", "{mix}", "{clear}", "--registry", "{registry}", "--false-alarm-rate", "1.5"],
-         r"--false-alarm-rate must be in \(0, 1\)"),
-        (["relate", "{mix}", "{clear}", "--registry", "{registry}", "--calibration-targets", "10"],
-         r"--calibration-targets must be ≥ 19 for --false-alarm-rate 0\.05, got 10"),
+        (
+            ["relate", "{mix}", "{clear}", "{overcast}", "--registry", "{registry}", "--points", "1"],
+            r"--points 1 cannot determine 2 mixture weights",
+        ),
+        (
+            ["relate", "{mix}", "{clear}", "--registry", "{registry}", "--false-alarm-rate", "1.5"],
+            r"--false-alarm-rate must be in \(0, 1\)",
+        ),
+        (
+            ["relate", "{mix}", "{clear}", "--registry", "{registry}", "--calibration-targets", "10"],
+            r"--calibration-targets must be ≥ 19 for --false-alarm-rate 0\.05, got 10",
+        ),
         (["relate", "{mix}", "{root}/nope", "--registry", "{registry}"], r"nope: not a folder"),
     ],
 )
@@ -345,8 +440,13 @@ def test_console_script(world, tmp_path):
     script = Path(sys.executable).with_name("pidc")
     if not script.exists():
         script = Path(shutil.which("pidc") or "pidc")
-    r = subprocess.run([str(script), "characterize", str(world["clear"] / "003.png"), "--samples", "100"],
-                       cwd=world["root"], capture_output=True, text=True, timeout=120)  # default registry: ./registry
+    r = subprocess.run(
+        [str(script), "characterize", str(world["clear"] / "003.png"), "--samples", "100"],
+        cwd=world["root"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )  # default registry: ./registry
     assert r.returncode == 0, r.stderr
     check_rows(parse_blocks(r.stdout)[str(world["clear"] / "003.png")][1])
     assert "with cues-tiny" in r.stderr

@@ -1,24 +1,188 @@
-"""params.yaml parsing: every profile parses, unknown keys and bad values are named."""
+"""params.yaml parsing: the one source of every setting. Every profile resolves to a complete config; unknown keys,
+missing keys and bad values are named; `pidc config check` validates without running anything."""
 
+import dataclasses
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from pydantic import BaseModel
 
-from components.core.config import PROJECT_ROOT, ConfigError, load_params, parse_params
 from components.core import seeding
+from components.core.config import PROJECT_ROOT, ConfigError, Params, load_params, parse_params
 
-
-@pytest.mark.parametrize("path", [PROJECT_ROOT / "params.yaml", *sorted((PROJECT_ROOT / "profiles").glob("*.yaml"))])
-def test_profiles_parse(path):
-    p = load_params(path)
-    assert max(p.train.sizes) <= p.data.splits["train"]
-    assert p.box.contains(p.box.low[None])[0]
+PROFILES = ["default", *sorted(f.stem for f in (PROJECT_ROOT / "profiles").glob("*.yaml"))]
 
 
 def _default():
     return yaml.safe_load((PROJECT_ROOT / "params.yaml").read_text())
+
+
+def _leaves(d: dict, where: str = "") -> dict[str, object]:
+    """Dotted key → value of every leaf of nested mappings (lists and scalars are leaves)."""
+    out = {}
+    for k, v in d.items():
+        key = f"{where}.{k}" if where else str(k)
+        out |= _leaves(v, key) if isinstance(v, dict) and v else {key: v}
+    return out
+
+
+def _section_models() -> set[type[BaseModel]]:
+    """Params and every section model reachable from it."""
+    seen: set[type[BaseModel]] = set()
+    todo = [Params]
+    while todo:
+        model = todo.pop()
+        if model in seen:
+            continue
+        seen.add(model)
+        for _name, field in model.model_fields.items():
+            todo += [t for t in _types_in(field.annotation) if isinstance(t, type) and issubclass(t, BaseModel)]
+    return seen
+
+
+def _types_in(annotation) -> list:
+    import typing
+
+    return [annotation, *(t for a in typing.get_args(annotation) for t in _types_in(a))]
+
+
+def test_no_setting_has_a_default_in_the_code():
+    """params.yaml is the only place a setting is written: no section model field has a default."""
+    models = _section_models()
+    assert {"Params", "TrainConfig", "FlowParams", "VariantConfig", "Task3Config", "BagConfig", "CarlaConfig"} <= {
+        m.__name__ for m in models
+    }
+    defaulted = [f"{m.__name__}.{n}" for m in models for n, f in m.model_fields.items() if not f.is_required()]
+    assert defaulted == []
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_every_profile_resolves_to_a_complete_config(profile):
+    p = load_params(PROJECT_ROOT / "params.yaml", profile=profile)
+    assert p.profile == profile
+    assert max(p.train.sizes) <= p.data.splits["train"]
+    assert p.box.contains(p.box.low[None])[0]
+
+    def every_field_set(model: BaseModel, where: str) -> None:
+        assert model.model_fields_set == set(type(model).model_fields), where
+        for name in type(model).model_fields:
+            values = getattr(model, name)
+            values = values.values() if isinstance(values, dict) else values if isinstance(values, tuple) else [values]
+            for v in values:
+                if isinstance(v, BaseModel):
+                    every_field_set(v, f"{where}.{name}")
+
+    every_field_set(p, profile)
+    # the dumped config is the complete settings: it parses on its own, without any profile
+    assert parse_params(p.model_dump(mode="json")) == p
+
+
+@pytest.mark.parametrize("profile", [n for n in PROFILES if n != "default"])
+def test_a_profile_holds_only_its_overrides(profile):
+    """The profile differs from the default settings exactly in the keys its file sets."""
+    overrides = yaml.safe_load((PROJECT_ROOT / "profiles" / f"{profile}.yaml").read_text()) or {}
+    base = _leaves(load_params(PROJECT_ROOT / "params.yaml", profile="default").model_dump(mode="json"))
+    resolved = _leaves(load_params(PROJECT_ROOT / "params.yaml", profile=profile).model_dump(mode="json"))
+    assert set(base) == set(resolved)
+    changed = {k for k in base if base[k] != resolved[k]} - {"profile"}
+    assert changed == set(_leaves(overrides)), "a profile sets exactly the keys whose values differ from params.yaml"
+
+
+def test_the_profile_key_of_the_file_picks_the_profile(tmp_path: Path):
+    shutil.copytree(PROJECT_ROOT / "profiles", tmp_path / "profiles")
+    d = _default()
+    d["profile"] = "paper"
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(d, sort_keys=False))
+    p = load_params(tmp_path / "params.yaml")
+    assert p == load_params(PROJECT_ROOT / "params.yaml", profile="paper")
+    assert p.profile == "paper" and p.export.exporter == "dynamo"
+    assert load_params(tmp_path / "params.yaml", profile="default") == load_params(PROJECT_ROOT / "params.yaml")
+
+
+def test_profiles_merge_mappings_and_replace_lists(tmp_path: Path):
+    (tmp_path / "profiles").mkdir()
+    (tmp_path / "profiles" / "small.yaml").write_text(
+        "data:\n  splits: {test: 3000}\n  runner: {workers: 1}\nbackbones:\n  names: [cues]\n"
+        "train:\n  variants: {balanced: {backbone: cues}, ensemble: {backbone: cues}}\n"
+    )
+    shutil.copy(PROJECT_ROOT / "params.yaml", tmp_path / "params.yaml")
+    p = load_params(tmp_path / "params.yaml", profile="small")
+    base = load_params(tmp_path / "params.yaml")
+    assert p.profile == "small" and p.data.splits == {"train": 10000, "val": 2000, "test": 3000}
+    assert p.data.runner.workers == 1 and p.data.runner.kind == base.data.runner.kind
+    assert p.backbones.names == ("cues",) and p.backbones.batch_size == base.backbones.batch_size
+    assert p.train.variants == base.train.variants
+
+
+def test_unknown_key_in_a_profile_is_named_with_its_file(tmp_path: Path):
+    (tmp_path / "profiles").mkdir()
+    (tmp_path / "profiles" / "odd.yaml").write_text("train:\n  flow:\n    binz: 4\nevaluate: {images: 100}\n")
+    shutil.copy(PROJECT_ROOT / "params.yaml", tmp_path / "params.yaml")
+    with pytest.raises(ConfigError, match=r"profiles/odd\.yaml: train\.flow\.binz: unknown key") as e:
+        load_params(tmp_path / "params.yaml", profile="odd")
+    assert "evaluate" not in str(e.value)
+    (tmp_path / "profiles" / "named.yaml").write_text("profile: other\n")
+    with pytest.raises(ConfigError, match=r"profiles/named\.yaml: profile: unknown key"):
+        load_params(tmp_path / "params.yaml", profile="named")
+    (tmp_path / "profiles" / "bad.yaml").write_text("train:\n  epochs: 0\n")
+    with pytest.raises(ConfigError, match=r"profiles/bad\.yaml.*\n.*train\.epochs: Input should be greater than 0"):
+        load_params(tmp_path / "params.yaml", profile="bad")
+
+
+@pytest.mark.parametrize("name", ["nope", "../params", None])
+def test_unknown_profile_is_named(tmp_path: Path, name):
+    d = _default()
+    d["profile"] = name
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(d, sort_keys=False))
+    with pytest.raises(ConfigError, match=r"params\.yaml: profile: unknown profile .*; profiles found: default \("):
+        load_params(tmp_path / "params.yaml")
+    with pytest.raises(
+        ConfigError, match=r"params\.yaml: profile: unknown profile 'x'; profiles found: default, paper"
+    ):
+        load_params(PROJECT_ROOT / "params.yaml", profile="x")
+
+
+def _remove(d: dict, dotted: str) -> None:
+    *path, last = dotted.split(".")
+    for k in path:
+        d = d[k]
+    del d[last]
+
+
+MISSING = [
+    "seed",
+    "profile",
+    "prior",
+    "data.shard_size",
+    "data.runner.dask_address",
+    "backbones.pretrained_dir",
+    "train.flow.bins",
+    "train.flow.standardize",
+    "train.min_lr",
+    "train.variants.balanced.ensemble",
+    "task2.modes",
+    "task3.bags",
+    "task3.bags.b1.max_images",
+    "evaluate.samples",
+    "simulator.carla.fov",
+]
+
+
+@pytest.mark.parametrize("key", MISSING)
+def test_a_missing_key_is_named(key, tmp_path: Path):
+    d = _default()
+    _remove(d, key)
+    with pytest.raises(ConfigError, match=rf"params\.yaml: invalid params\n  {key.replace('.', r'[.]')}: missing key$"):
+        parse_params(d, source="params.yaml")
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(d, sort_keys=False))
+    with pytest.raises(ConfigError, match=rf"{key.replace('.', r'[.]')}: missing key"):
+        load_params(path)
 
 
 def test_unknown_key_is_named():
@@ -36,17 +200,34 @@ def test_unknown_key_is_named():
         (lambda d: d["prior"].update(fog_density=[0, 200]), r"'fog_density' = 200 is outside"),
         (lambda d: d["train"].update(sizes=[1000, 50000]), r"train split must cover the largest training size"),
         (lambda d: d["data"]["runner"].update(kind="mpi"), r"data\.runner\.kind"),
-        (lambda d: d["train"]["variants"].update(x={"backbone": "resnet50", "size": 10000}),
-         r"train.variants.x needs a backbone in backbones.names"),
-        (lambda d: d["train"]["variants"].update({"Bad Name": {"backbone": "cues", "size": 10000}}), r"train\.variants"),
-        (lambda d: d["evaluate"].update(samples=100), r"evaluate\.samples: Input should be greater than or equal to 400"),
+        (
+            lambda d: d["train"]["variants"].update(
+                x={"backbone": "resnet50", "size": 10000, "balance": 0, "ensemble": 2}
+            ),
+            r"train.variants.x needs a backbone in backbones.names",
+        ),
+        (
+            lambda d: d["train"]["variants"].update(
+                {"Bad Name": {"backbone": "cues", "size": 10000, "balance": 0, "ensemble": 2}}
+            ),
+            r"train\.variants",
+        ),
+        (lambda d: d["train"].update(min_lr=0.01), r"train: .*min_lr \(0\.01\) must not exceed lr \(0\.001\)"),
+        (lambda d: d["train"].update(plateau_factor=1.0), r"train\.plateau_factor: Input should be less than 1"),
+        (lambda d: d["train"]["flow"].update(standardize="maybe"), r"train\.flow\.standardize"),
+        (
+            lambda d: d["evaluate"].update(samples=100),
+            r"evaluate\.samples: Input should be greater than or equal to 400",
+        ),
         (lambda d: d["evaluate"].update(images=5000), r"evaluate.images is 5000 but the test split has only 2000"),
         (lambda d: d.pop("seed") and d.update(seed=None), r"seed"),
         (lambda d: d["export"].update(exporter="tf"), r"export\.exporter"),
         (lambda d: d["task2"]["fixed"].pop("cloudiness"), r"task2\.fixed: .*must give exactly"),
         (lambda d: d["task2"]["modes"][0].update(std=[0, 1]), r"task2\.modes\.0\.std"),
-        (lambda d: d["task3"]["bags"]["b0"]["box"].update(sun_altitude_angle=[-90, 30]),
-         r"bags\.b0\.box overlaps bags\.b1\.box"),
+        (
+            lambda d: d["task3"]["bags"]["b0"]["box"].update(sun_altitude_angle=[-90, 30]),
+            r"bags\.b0\.box overlaps bags\.b1\.box",
+        ),
         (lambda d: d["task3"].update(weights=[0.5, 0.6, 0.1]), r"weights must sum to 1"),
         (lambda d: d["task3"].update(weights=[0.5, 0.5]), r"weights has 2 entries for 3 sources"),
         (lambda d: d["task3"].update(etas=[0.5, 1.0]), r"etas must contain 0"),
@@ -80,3 +261,124 @@ def test_seed_streams_are_deterministic_and_independent():
         seeding.rng(7, -1)
 
 
+# --- pidc config check -------------------------------------------------------------------------------------------
+
+
+def _check(*args: str, cwd: Path = PROJECT_ROOT) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "components.cli.main", "config", "check", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+@pytest.mark.parametrize("profile", [None, "paper"])
+def test_config_check_prints_the_resolved_config(profile):
+    r = _check("--params", str(PROJECT_ROOT / "params.yaml"), *(["--profile", profile] if profile else []))
+    assert r.returncode == 0, r.stderr
+    first = r.stdout.splitlines()[0]
+    assert first.startswith("#") and "params.yaml" in first and f"profile {profile or 'default'}" in first
+    printed = yaml.safe_load(r.stdout)
+    assert parse_params(printed) == load_params(PROJECT_ROOT / "params.yaml", profile=profile)
+
+
+def test_config_check_imports_no_torch():
+    code = (
+        "import sys; from components.cli.main import main; rc = main(['config', 'check']); "
+        "assert rc == 0 and 'torch' not in sys.modules, sorted(m for m in sys.modules if 'torch' in m)"
+    )
+    r = subprocess.run([sys.executable, "-c", code], cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+
+
+@pytest.mark.parametrize("key", ["seed", "data.shard_size", "train.flow.bins", "task3.bags", "evaluate.samples"])
+def test_config_check_names_a_missing_key_on_one_line(key, tmp_path: Path):
+    d = _default()
+    _remove(d, key)
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(d, sort_keys=False))
+    r = _check("--params", str(path))
+    assert r.returncode == 2 and r.stdout == ""
+    err = r.stderr.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith("pidc config: error: ") and f"{path}: invalid params; {key}: missing key" in err, err
+
+
+def test_config_check_names_an_unknown_profile_and_a_missing_file(tmp_path: Path):
+    r = _check("--profile", "huge")
+    assert (
+        r.returncode == 2 and "params.yaml: profile: unknown profile 'huge'; profiles found: default, paper" in r.stderr
+    )
+    r = _check("--params", str(tmp_path / "none.yaml"))
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "cannot read params file" in r.stderr
+
+
+# --- the pipeline's flow and training settings -------------------------------------------------------------------
+
+
+def _recorded(monkeypatch, module, name: str) -> dict:
+    """Replace ``module.name`` (a dataclass) by a recorder of the keywords it is called with."""
+    cls, calls = getattr(module, name), {}
+
+    class Recorder(cls):
+        def __init__(self, *args, **kwargs):
+            assert not args, f"{name} must be built from keywords only"
+            calls.update(kwargs)
+            super().__init__(**kwargs)
+
+    monkeypatch.setattr(module, name, Recorder)
+    return calls
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+@pytest.mark.parametrize("trainable", [False, True])
+def test_settings_set_every_field_of_the_library_classes(profile, trainable, monkeypatch):
+    from components.posterior import settings
+    from components.posterior.model import FlowConfig
+    from components.posterior.train import TrainingConfig
+
+    t = load_params(PROJECT_ROOT / "params.yaml", profile=profile).train
+    flow_kw = _recorded(monkeypatch, settings, "FlowConfig")
+    train_kw = _recorded(monkeypatch, settings, "TrainingConfig")
+    flow = settings.flow_config(t)
+    cfg = settings.training_config(t, trainable=trainable, seed=11)
+    assert set(flow_kw) == {f.name for f in dataclasses.fields(FlowConfig)}
+    assert set(train_kw) == {f.name for f in dataclasses.fields(TrainingConfig)}
+    assert dataclasses.asdict(flow) == {**t.flow.model_dump(), "hidden_features": tuple(t.flow.hidden_features)}
+    same = {f.name for f in dataclasses.fields(TrainingConfig)} - {"epochs", "seed"}
+    assert {k: getattr(cfg, k) for k in same} == {k: getattr(t, k) for k in same}
+    assert cfg.epochs == (t.embedding_epochs if trainable else t.epochs) and cfg.seed == 11
+
+
+def test_settings_reproduce_the_pipelines_settings():
+    """The default profile trains exactly as before (when the library defaults filled the unset fields)."""
+    from components.posterior import FlowConfig, TrainingConfig
+    from components.posterior.settings import flow_config, training_config
+
+    p = load_params(PROJECT_ROOT / "params.yaml")
+    seed = seeding.derive_seed(p.seed, "train") % 2**31
+    assert flow_config(p.train) == FlowConfig(transforms=3, hidden_features=(128, 128), bins=8, passes=2, ensemble=1)
+    assert flow_config(p.train).standardize is True
+    assert flow_config(p.train, ensemble=3) == FlowConfig(
+        transforms=3, hidden_features=(128, 128), bins=8, passes=2, ensemble=3
+    )
+    before = dict(batch_size=256, lr=1e-3, weight_decay=1e-4, schedule="cosine", patience=10, clip_norm=5.0, seed=seed)
+    assert training_config(p.train, trainable=False, seed=seed) == TrainingConfig(epochs=60, balance=0.0, **before)
+    assert training_config(p.train, trainable=True, seed=seed) == TrainingConfig(epochs=8, balance=0.0, **before)
+    assert training_config(p.train, trainable=False, seed=seed, balance=100.0) == TrainingConfig(
+        epochs=60, balance=100.0, **before
+    )
+    cfg = training_config(p.train, trainable=False, seed=seed)
+    assert (cfg.min_lr, cfg.plateau_factor, cfg.plateau_patience, cfg.min_delta) == (1e-6, 0.5, 5, 0.0)
+    for f in dataclasses.fields(TrainingConfig):  # every value is a plain Python value, as the library's defaults
+        assert type(getattr(cfg, f.name)) is type(getattr(TrainingConfig(), f.name)) or f.name == "clip_norm"
+
+
+def test_settings_refuse_to_leave_a_field_to_its_default():
+    from components.posterior.settings import _every_field
+    from components.posterior.train import TrainingConfig
+
+    with pytest.raises(TypeError, match=r"missing \['min_lr'\]"):
+        _every_field(TrainingConfig, {f.name: 0 for f in dataclasses.fields(TrainingConfig) if f.name != "min_lr"})

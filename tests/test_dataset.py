@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from components.simulate import dataset
 from components.core import weather
-from components.simulate import ProceduralSimulator
+from components.simulate import dataset
+from components.simulate.procedural import ProceduralSimulator
 
 BOX = weather.Box.full()
 
@@ -64,8 +64,9 @@ def test_write_read_round_trip_is_byte_identical(tmp_path, sim):
     for root in (tmp_path / "a", tmp_path / "b"):
         for p in plans:
             _render_all(p, sim, root)
-        manifest = dataset.write_manifest(root, plans, renderer_version="test", resolution=(32, 32), seed=5, box=BOX,
-                                          images_per_scene=4)
+        manifest = dataset.write_manifest(
+            root, plans, renderer_version="test", resolution=(32, 32), seed=5, box=BOX, images_per_scene=4
+        )
     for f in sorted((tmp_path / "a").rglob("*.npz")):
         assert f.read_bytes() == (tmp_path / "b" / f.relative_to(tmp_path / "a")).read_bytes(), f
     split = dataset.open_split(tmp_path / "a", "train", verify=True)
@@ -75,7 +76,7 @@ def test_write_read_round_trip_is_byte_identical(tmp_path, sim):
     assert images.shape == (30, 32, 32, 3) and images.dtype == np.uint8
     np.testing.assert_array_equal(split.images(stop=12), images[:12])
     # the stored image is the simulator's image of that weather and scene
-    w = dict(zip(weather.ALL_NAMES, split.weather[13]))
+    w = dict(zip(weather.ALL_NAMES, split.weather[13], strict=False))
     np.testing.assert_array_equal(images[13], sim.render(w, int(split.scene_seed[13])))
     assert manifest["splits"]["train"]["count"] == 30
     assert manifest["content_hash"] == json.loads((tmp_path / "b" / "manifest.json").read_text())["content_hash"]
@@ -86,7 +87,9 @@ def test_damaged_shards_are_detected(tmp_path, sim):
     _render_all(plan, sim, tmp_path)
     specs = plan.shards()
     assert all(dataset.shard_is_done(s, tmp_path) for s in specs)
-    dataset.write_manifest(tmp_path, [plan], renderer_version="test", resolution=(32, 32), seed=5, box=BOX, images_per_scene=4)
+    dataset.write_manifest(
+        tmp_path, [plan], renderer_version="test", resolution=(32, 32), seed=5, box=BOX, images_per_scene=4
+    )
 
     # truncated: not done, and the reader refuses it
     path = specs[1].path(tmp_path)
@@ -114,8 +117,9 @@ def test_damaged_shards_are_detected(tmp_path, sim):
     # a manifest cannot be written while shards are unfinished
     specs[0].receipt_path(tmp_path).unlink()
     with pytest.raises(dataset.DatasetError, match="shard not finished"):
-        dataset.write_manifest(tmp_path, [plan], renderer_version="test", resolution=(32, 32), seed=5, box=BOX,
-                               images_per_scene=4)
+        dataset.write_manifest(
+            tmp_path, [plan], renderer_version="test", resolution=(32, 32), seed=5, box=BOX, images_per_scene=4
+        )
 
 
 def test_orphans_removed_when_split_shrinks(tmp_path, sim):

@@ -23,12 +23,15 @@ from components.core.config import PROJECT_ROOT
 from tests.conftest import copy_project
 
 FINAL = {"COMPLETED", "FAILED", "CRASHED", "CANCELLED"}
-OUTPUTS = {"flows/evaluate.py:evaluate": "reports/task1/metrics.json", "flows/task3.py:task3": "reports/task3/metrics.json"}
+OUTPUTS = {
+    "flows/evaluate.py:evaluate": "reports/task1/metrics.json",
+    "flows/task3.py:task3": "reports/task3/metrics.json",
+}
 RUN_TIMEOUT_S = 300
 
 # Loaded by every Python process the worker starts (through PYTHONPATH): at exit, records which source files of
 # code outside the Python installation (the project's components/ and flows/) the process imported.
-IMPORT_PROBE = '''
+IMPORT_PROBE = """
 import atexit, json, os, sys
 
 def _record():
@@ -40,11 +43,13 @@ def _record():
         json.dump({"cwd": os.getcwd(), "modules": files}, out)
 
 atexit.register(_record)
-'''
+"""
 
 
 def _prefect(args: list[str], cwd: Path, env: dict) -> str:
-    r = subprocess.run([sys.executable, "-m", "prefect", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=180)
+    r = subprocess.run(
+        [sys.executable, "-m", "prefect", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=180
+    )
     assert r.returncode == 0, f"`prefect {' '.join(args)}` failed ({r.returncode}):\n{r.stdout}\n{r.stderr}"
     return r.stdout
 
@@ -97,19 +102,24 @@ def _wait_until_final(api: httpx.Client, run_id: str, worker_log: Path) -> dict:
             break
         time.sleep(1)
     if run["state"]["type"] != "COMPLETED":
-        logs = api.post("/logs/filter", json={"logs": {"flow_run_id": {"any_": [run_id]}}, "sort": "TIMESTAMP_DESC",
-                                              "limit": 40}).json()
+        logs = api.post(
+            "/logs/filter", json={"logs": {"flow_run_id": {"any_": [run_id]}}, "sort": "TIMESTAMP_DESC", "limit": 40}
+        ).json()
         log_text = "\n".join(f"{entry['timestamp']} {entry['message']}" for entry in reversed(logs))
         worker_text = worker_log.read_text(errors="replace")[-6000:]
-        pytest.fail(f"flow run {run['name']} ({run_id}) is {run['state']['type']} after {RUN_TIMEOUT_S} s at most: "
-                    f"{run['state'].get('message')}\n--- flow run logs ---\n{log_text}\n--- worker log ---\n{worker_text}")
+        pytest.fail(
+            f"flow run {run['name']} ({run_id}) is {run['state']['type']} after {RUN_TIMEOUT_S} s at most: "
+            f"{run['state'].get('message')}\n--- flow run logs ---\n{log_text}\n--- worker log ---\n{worker_text}"
+        )
     return run
 
 
 @pytest.mark.slow
 def test_prefect_yaml_deployments_run_on_a_process_worker(micro_project, prefect_server, tmp_path):
     spec = yaml.safe_load((PROJECT_ROOT / "prefect.yaml").read_text())
-    project = copy_project(micro_project, tmp_path / "project").resolve()  # the runs write into it: the shared one stays as built
+    project = copy_project(
+        micro_project, tmp_path / "project"
+    ).resolve()  # the runs write into it: the shared one stays as built
     shutil.copy(PROJECT_ROOT / "prefect.yaml", project / "prefect.yaml")  # the file under test, deployed from the root
     wanted = spec["deployments"]
     present = [d for d in wanted if (project / d["entrypoint"].partition(":")[0]).is_file()]
@@ -129,15 +139,24 @@ def test_prefect_yaml_deployments_run_on_a_process_worker(micro_project, prefect
     (probe / "records").mkdir(parents=True)
     (probe / "sitecustomize.py").write_text(IMPORT_PROBE)
     # the worker knows nothing of the project: no PIDC_PROJECT, started elsewhere
-    worker_env = {**env, "PYTHONPATH": str(probe), "PIDC_IMPORT_PROBE": str(probe / "records"),
-                  "PREFECT_WORKER_QUERY_SECONDS": "1"}
+    worker_env = {
+        **env,
+        "PYTHONPATH": str(probe),
+        "PIDC_IMPORT_PROBE": str(probe / "records"),
+        "PREFECT_WORKER_QUERY_SECONDS": "1",
+    }
     worker_env.pop("PIDC_PROJECT", None)
     (tmp_path / "worker").mkdir()
     worker_log = tmp_path / "worker.log"
     with open(worker_log, "wb") as log:
-        worker = subprocess.Popen([sys.executable, "-m", "prefect", "worker", "start", "--pool", pool],
-                                  cwd=tmp_path / "worker", env=worker_env, stdout=log, stderr=subprocess.STDOUT,
-                                  start_new_session=True)
+        worker = subprocess.Popen(
+            [sys.executable, "-m", "prefect", "worker", "start", "--pool", pool],
+            cwd=tmp_path / "worker",
+            env=worker_env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
     try:
         # deploy as the README does, from the project root with PIDC_PROJECT set (flows/task3.py may not exist yet)
         selection = ["--all"] if present == wanted else [a for d in present for a in ("--name", d["name"])]
@@ -145,7 +164,11 @@ def test_prefect_yaml_deployments_run_on_a_process_worker(micro_project, prefect
 
         with httpx.Client(base_url=prefect_server, timeout=30) as api:
             names = [d["name"] for d in present]
-            deployed = api.post("/deployments/filter", json={"deployments": {"name": {"any_": names}}}).raise_for_status().json()
+            deployed = (
+                api.post("/deployments/filter", json={"deployments": {"name": {"any_": names}}})
+                .raise_for_status()
+                .json()
+            )
             by_entrypoint = {d["entrypoint"]: d for d in deployed}
             assert sorted(by_entrypoint) == sorted(d["entrypoint"] for d in present)
             for want in present:
@@ -153,22 +176,32 @@ def test_prefect_yaml_deployments_run_on_a_process_worker(micro_project, prefect
                 assert got["name"] == want["name"] and got["work_pool_name"] == pool
                 assert got["parameters"] == want["parameters"] == {"params_path": "params.yaml"}
                 # the path of the checkout it was deployed from, resolved at deploy time
-                assert got["pull_steps"] == [{"prefect.deployments.steps.set_working_directory": {"directory": str(project)}}]
-                schedules = [(s["schedule"].get("cron"), s["schedule"].get("timezone"), s["active"]) for s in got["schedules"]]
+                assert got["pull_steps"] == [
+                    {"prefect.deployments.steps.set_working_directory": {"directory": str(project)}}
+                ]
+                schedules = [
+                    (s["schedule"].get("cron"), s["schedule"].get("timezone"), s["active"]) for s in got["schedules"]
+                ]
                 assert schedules == [(s["cron"], s["timezone"], s.get("active", True)) for s in want["schedules"]]
                 assert schedules and all(cron and tz for cron, tz, _ in schedules)
 
             run_ids = {}
             for want in present:  # by hand, as the README shows; the worker runs them side by side
-                flow_name = api.get(f"/flows/{by_entrypoint[want['entrypoint']]['flow_id']}").raise_for_status().json()["name"]
+                flow_name = (
+                    api.get(f"/flows/{by_entrypoint[want['entrypoint']]['flow_id']}").raise_for_status().json()["name"]
+                )
                 out = _prefect(["deployment", "run", f"{flow_name}/{want['name']}"], project, env)
                 found = re.search(r"UUID: ([0-9a-f-]{36})", out)
                 assert found, out
                 run_ids[want["entrypoint"]] = found.group(1)
             for entrypoint, run_id in run_ids.items():
                 run = _wait_until_final(api, run_id, worker_log)
-                assert run["deployment_id"] == by_entrypoint[entrypoint]["id"] and run["parameters"] == {"params_path": "params.yaml"}
-                assert (project / OUTPUTS[entrypoint]).is_file(), f"{entrypoint} completed without writing {OUTPUTS[entrypoint]}"
+                assert run["deployment_id"] == by_entrypoint[entrypoint]["id"] and run["parameters"] == {
+                    "params_path": "params.yaml"
+                }
+                assert (project / OUTPUTS[entrypoint]).is_file(), (
+                    f"{entrypoint} completed without writing {OUTPUTS[entrypoint]}"
+                )
         _wait_for_flow_run_processes(worker)
     finally:
         _stop(worker)

@@ -59,7 +59,9 @@ def test_too_narrow_is_below_and_too_wide_is_above_the_diagonal() -> None:
     assert coverage_error(narrow) < -0.2 and coverage_error(wide) > 0.2
     # closed forms in 2-D: the HPD region at level l is a disc of radius² −2·log(1 − l) (in the model's sd), and
     # |w* − mean|² / sd_true² ~ χ²₂, so c(l) = 1 − (1 − l)^(k²) for a model sd of k × the true sd
-    np.testing.assert_allclose(expected_coverage(narrow, DEFAULT_LEVELS), 1 - (1 - DEFAULT_LEVELS) ** 0.25, atol=TOLERANCE)
+    np.testing.assert_allclose(
+        expected_coverage(narrow, DEFAULT_LEVELS), 1 - (1 - DEFAULT_LEVELS) ** 0.25, atol=TOLERANCE
+    )
     np.testing.assert_allclose(expected_coverage(wide, DEFAULT_LEVELS), 1 - (1 - DEFAULT_LEVELS) ** 4, atol=TOLERANCE)
 
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from components.domains.absolute import Domain, ExponentialFilter, Posterior, mixture_of, normalized_weights
 from components.core.seeding import rng
+from components.domains.absolute import Domain, ExponentialFilter, Posterior, mixture_of, normalized_weights
 
 
 class GaussianPosterior:
@@ -141,7 +141,9 @@ def test_mixture_of_domains_equals_weighted_mixture_of_densities():
     lam = np.array([0.2, 0.3, 0.5])
     mix = mixture_of(doms, lam)
     theta = r.normal(1, 2, size=(64, 2))
-    direct = np.logaddexp.reduce(np.stack([np.log(l) + d.log_prob(theta) for l, d in zip(lam, doms)]), axis=0)
+    direct = np.logaddexp.reduce(
+        np.stack([np.log(l) + d.log_prob(theta) for l, d in zip(lam, doms, strict=False)]), axis=0
+    )
     np.testing.assert_allclose(mix.log_prob(theta), direct, rtol=1e-12)
     assert len(mix) == 14 and mix.weights.sum() == pytest.approx(1.0)
     # a mixture of mixtures is again one: nesting equals flattening

@@ -19,14 +19,13 @@ import onnx
 import pytest
 import torch
 
-from components.core import seeding
-from components.core import weather
-from components.features.backbones import get_backbone
+from components.core import seeding, weather
 from components.domains.absolute import Domain, Posterior
 from components.export.onnx import OPSET, export_posterior
+from components.export.runtime import OnnxPosterior
+from components.features.backbones import get_backbone
 from components.posterior.mixture import EqualMixture, draw_flow
 from components.posterior.model import NPE, FlowConfig
-from components.export.runtime import OnnxPosterior
 
 ROOT = Path(__file__).resolve().parents[1]
 BOX = weather.Box.full()
@@ -64,7 +63,11 @@ def exported(tmp_path_factory) -> dict[str, tuple[NPE, OnnxPosterior, Path]]:
     """
     root = tmp_path_factory.mktemp("registry")
     out = {}
-    for name, model in (("features", _features_model(1, 1)), ("ensemble", _features_model(2, 2)), ("cnn", _cnn_model(3))):
+    for name, model in (
+        ("features", _features_model(1, 1)),
+        ("ensemble", _features_model(2, 2)),
+        ("cnn", _cnn_model(3)),
+    ):
         folder = export_posterior(model, root / name, card={"backbone": name, "train_size": 7}, exporter="torchscript")
         out[name] = (model, OnnxPosterior.load(folder), folder)
     return out
@@ -113,7 +116,9 @@ def test_log_prob_matches_torch(exported, kind):
     assert got.shape == (9,) and got.dtype == np.float64
     assert np.all(np.isfinite(got))
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-4)
-    np.testing.assert_allclose(runtime.context(x), model.context(torch.as_tensor(x)).detach().numpy(), rtol=0, atol=1e-4)
+    np.testing.assert_allclose(
+        runtime.context(x), model.context(torch.as_tensor(x)).detach().numpy(), rtol=0, atol=1e-4
+    )
     # several θ per input, and points outside the box
     many = np.stack([_theta(9, seed=13), _theta(9, seed=14)], axis=1)
     many[2, 1, 3] = BOX.high[3] + 0.5
@@ -209,8 +214,13 @@ def test_card_describes_the_model(exported):
         proto = onnx.load(str(folder / entry["name"]))
         onnx.checker.check_model(proto)
         assert max(op.version for op in proto.opset_import if op.domain in ("", "ai.onnx")) >= OPSET
-    assert sorted(p.name for p in folder.iterdir()) == ["card.json", "context.onnx", "density.onnx", "log_prob.onnx",
-                                                        "sample_0.onnx"]
+    assert sorted(p.name for p in folder.iterdir()) == [
+        "card.json",
+        "context.onnx",
+        "density.onnx",
+        "log_prob.onnx",
+        "sample_0.onnx",
+    ]
 
 
 def test_clear_errors(exported, tmp_path):
@@ -280,7 +290,10 @@ def test_runtime_runs_without_torch(exported, tmp_path):
     np.save(tmp_path / "theta.npy", theta)
     done = subprocess.run(
         [sys.executable, "-c", _NO_TORCH, str(folder), str(tmp_path / "x.npy"), str(tmp_path / "theta.npy")],
-        cwd=ROOT, capture_output=True, text=True, timeout=60,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert done.returncode == 0, done.stderr[-2000:]
     out = json.loads(done.stdout.strip().splitlines()[-1])

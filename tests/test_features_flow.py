@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from components.simulate import dataset
 from components.features import cache as features
 from components.features.backbones import get_backbone
+from components.simulate import dataset
 from tests.conftest import write_params
 
 

@@ -8,8 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from components.simulate import dataset
 from components.core.config import load_params
+from components.simulate import dataset
 from tests.conftest import FAST_TRAINING, copy_project, run_in, write_params
 
 
@@ -43,7 +43,7 @@ def test_flow_generates_and_resumes_after_damage(tmp_path, prefect_harness):
 @pytest.mark.parametrize("kind", ["processes", "dask"])
 def test_every_task_runner_gives_the_same_data(tmp_path, prefect_harness, kind):
     from flows.generate import generate
-    from flows.runtime import task_runner
+    from flows.stage import task_runner
 
     reference = generate(str(write_params(tmp_path / "threads")))  # threads (micro params' default)
     params = write_params(tmp_path / kind, **{"data.runner": {"kind": kind, "workers": 2, "dask_address": None}})
@@ -77,13 +77,19 @@ def test_dvc_repro_pipeline_in_a_temp_git_repo(micro_project, tmp_path, prefect_
         fm = json.loads((repo / f"features/{backbone}/manifest.json").read_text())
         assert fm["dataset_content_hash"] == manifest["content_hash"]
     task1 = json.loads((repo / "reports/task1/metrics.json").read_text())
-    assert set(task1) == {"cues-8", "cues-24", "cnn-8", "cnn-24", "cues-24-ensemble"} and all(np.isfinite(m["test_nll"]) for m in task1.values())
+    assert set(task1) == {"cues-8", "cues-24", "cnn-8", "cnn-24", "cues-24-ensemble"} and all(
+        np.isfinite(m["test_nll"]) for m in task1.values()
+    )
     assert (repo / "reports/task1/plots/coverage.png").is_file() and (repo / "mlflow.db").is_file()
     # export: every model in registry/ (loaded by the torch-free runtime) and the champion named
     for model in task1:
         assert f"export@{model}:" in lock or f"export-variant@{model.rsplit('-', 1)[1]}:" in lock, model
         card = json.loads((repo / "registry" / model / "card.json").read_text())
-        assert card["model_id"] == model and card["data_hash"] and set(card["files"]) >= {"context", "log_prob", "sample_0"}
+        assert (
+            card["model_id"] == model
+            and card["data_hash"]
+            and set(card["files"]) >= {"context", "log_prob", "sample_0"}
+        )
     champion = json.loads((repo / "reports/task1/champion.json").read_text())
     assert champion["model"] == min(task1, key=lambda m: task1[m]["calibration_error"])
     # Task II: the bag's characterization against the known distribution

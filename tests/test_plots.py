@@ -104,7 +104,13 @@ def test_marginal_hdr_mass_follows_the_gaussian_expectation():
     assert inside.shape == outside.shape == (6, bins) and len(edges) == 6
     in_box = Box.full().contains(theta)
     assert abs(inside.sum(axis=1).mean() - level) < 0.005
-    assert np.allclose((inside + outside).sum(axis=1), [np.mean((theta[:, k] >= 0) & (theta[:, k] <= 100)) if k != 3 else np.mean(np.abs(theta[:, 3]) <= 90) for k in range(6)])
+    assert np.allclose(
+        (inside + outside).sum(axis=1),
+        [
+            np.mean((theta[:, k] >= 0) & (theta[:, k] <= 100)) if k != 3 else np.mean(np.abs(theta[:, 3]) <= 90)
+            for k in range(6)
+        ],
+    )
     assert in_box.mean() > 0.99
 
     c = chi2_6_quantile(level)
@@ -113,7 +119,12 @@ def test_marginal_hdr_mass_follows_the_gaussian_expectation():
     f5 = np.array([chi2_5_cdf(c - v * v) for v in x])
     dens = phi * f5
     z_edges = (edges[0] - centre[0]) / scale[0]
-    expected = np.array([np.trapezoid(dens[(x >= a) & (x <= b)], x[(x >= a) & (x <= b)]) for a, b in zip(z_edges[:-1], z_edges[1:])])
+    expected = np.array(
+        [
+            np.trapezoid(dens[(x >= a) & (x <= b)], x[(x >= a) & (x <= b)])
+            for a, b in zip(z_edges[:-1], z_edges[1:], strict=False)
+        ]
+    )
     assert abs(expected.sum() - level) < 1e-3  # the formula itself integrates to α
     sd = np.sqrt(expected * (1 - expected) / n)
     assert np.all(np.abs(inside[0] - expected) <= 5 * sd + 2e-3), np.c_[inside[0], expected]
@@ -146,7 +157,7 @@ def test_grid_hdr_regions_enclose_the_stated_mass_with_the_gaussian_area(smooth)
     thresholds = plots.grid_hdr_thresholds(mass, LEVELS)
     assert np.all(np.diff(thresholds) < 0)
     cell = (xe[1] - xe[0]) * (ye[1] - ye[0])
-    for level, t in zip(LEVELS, thresholds):
+    for level, t in zip(LEVELS, thresholds, strict=False):
         region = mass >= t
         # the smallest superlevel set reaching α: without the cells at the threshold it holds less than α
         assert mass[mass > t].sum() < level <= mass[region].sum()
@@ -220,12 +231,18 @@ def _figures():
         "marginals": lambda: plots.marginal_histograms(theta, lp, truth),
         "corner": lambda: plots.corner_plot(theta, lp, truth, zoom=True, bins=25),
         "corner_compare": lambda: plots.corner_compare(theta, theta[::-1] + 5, ("true", "estimate"), bins=20),
-        "coverage": lambda: plots.coverage_plot({f"{b}-{s}": (lv, lv**p) for b in ("resnet", "clip") for s, p in (("5k", 0.7), ("50k", 1.3))}),
+        "coverage": lambda: plots.coverage_plot(
+            {f"{b}-{s}": (lv, lv**p) for b in ("resnet", "clip") for s, p in (("5k", 0.7), ("50k", 1.3))}
+        ),
         "superiority": lambda: plots.superiority_boxplot({"resnet-5k": g.random(50), "clip-5k": g.random(50) ** 2}),
-        "ppc": lambda: plots.ppc_sheet(_images(1)[0], _images(3, key="post"), _images(2, key="prior"), {"posterior": [0.1, 0.2, 0.3]}),
+        "ppc": lambda: plots.ppc_sheet(
+            _images(1)[0], _images(3, key="post"), _images(2, key="prior"), {"posterior": [0.1, 0.2, 0.3]}
+        ),
         "loss": lambda: plots.loss_curves({"train": [3, 2, 1.5, 1.2], "val": [3.1, 2.2, 2.0, 2.1]}),
         "grid": lambda: plots.image_grid(_images(5), 3, titles=list("abcde")),
-        "by_level": lambda: plots.boxplots_by_level({e: g.random(20) * (1 + e) for e in etas}, {e: g.random(20) + 2 for e in etas}, "η", "δ"),
+        "by_level": lambda: plots.boxplots_by_level(
+            {e: g.random(20) * (1 + e) for e in etas}, {e: g.random(20) + 2 for e in etas}, "η", "δ"
+        ),
         "roc": lambda: plots.roc_curves(g.random(30), {e: g.random(30) + e for e in etas[1:]}),
     }
 
@@ -257,7 +274,13 @@ def test_plots_neither_load_pyplot_nor_switch_backend_and_close_pyplot_figures(t
         "import matplotlib.pyplot as plt; g = plt.figure(); g.add_subplot().plot([0, 1]); "
         f"p.save_figure(g, {str(tmp_path / 'g.png')!r}); print(plt.get_fignums() == [])"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={"MPLBACKEND": "svg", "PATH": ""}, cwd=Path(__file__).resolve().parents[1])
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env={"MPLBACKEND": "svg", "PATH": ""},
+        cwd=Path(__file__).resolve().parents[1],
+    )
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["False", "True", "True"]
     assert (tmp_path / "g.png").stat().st_mode & 0o777 == 0o644
@@ -274,19 +297,39 @@ _LP = -np.arange(500, dtype=float) / 100
     [
         (lambda: plots.marginal_histograms(_THETA[:, :5], _LP), ValueError, r"samples must have shape \(n, 6\)"),
         (lambda: plots.marginal_histograms(_THETA, _LP[:-1]), ValueError, r"log_prob must have shape \(500,\)"),
-        (lambda: plots.marginal_histograms(_THETA, _LP, truth=np.zeros(5)), ValueError, r"truth must have shape \(6,\)"),
+        (
+            lambda: plots.marginal_histograms(_THETA, _LP, truth=np.zeros(5)),
+            ValueError,
+            r"truth must have shape \(6,\)",
+        ),
         (lambda: plots.marginal_histograms(_THETA, _LP, level=1.0), ValueError, r"strictly inside \(0, 1\)"),
         (lambda: plots.marginal_histograms(_THETA, _LP, box=(0, 1)), TypeError, "components.core.weather.Box"),
         (lambda: plots.corner_plot(_THETA, _LP, levels=(0.5, 1.2)), ValueError, r"strictly inside \(0, 1\)"),
         (lambda: plots.corner_plot(_THETA[:100], _LP[:100], zoom=True), ValueError, "needs at least 371 samples"),
-        (lambda: plots.corner_plot(_THETA, reference_samples=np.zeros((4, 3))), ValueError, "reference_samples must have shape"),
+        (
+            lambda: plots.corner_plot(_THETA, reference_samples=np.zeros((4, 3))),
+            ValueError,
+            "reference_samples must have shape",
+        ),
         (lambda: plots.coverage_plot({"m": (np.linspace(0, 1, 5), np.ones(4))}), ValueError, "one length"),
-        (lambda: plots.coverage_plot({"m": (np.linspace(0, 1, 5), np.full(5, 1.5))}), ValueError, r"coverage must lie in \[0, 1\]"),
+        (
+            lambda: plots.coverage_plot({"m": (np.linspace(0, 1, 5), np.full(5, 1.5))}),
+            ValueError,
+            r"coverage must lie in \[0, 1\]",
+        ),
         (lambda: plots.superiority_boxplot({"m": [0.2, 1.3]}), ValueError, r"pi\['m'\] must lie in \[0, 1\]"),
         (lambda: plots.superiority_boxplot({}), ValueError, "pi is empty"),
         (lambda: plots.ppc_sheet(_images(1)[0].astype(float), _images(2)), TypeError, "observed must be uint8"),
-        (lambda: plots.ppc_sheet(_images(1)[0], _images(2)[0]), ValueError, r"posterior_renders must have shape \(k, H, W, 3\)"),
-        (lambda: plots.ppc_sheet(_images(1)[0], _images(2), distances=[1.0]), ValueError, r"distances\['posterior'\] must have shape \(2,\)"),
+        (
+            lambda: plots.ppc_sheet(_images(1)[0], _images(2)[0]),
+            ValueError,
+            r"posterior_renders must have shape \(k, H, W, 3\)",
+        ),
+        (
+            lambda: plots.ppc_sheet(_images(1)[0], _images(2), distances=[1.0]),
+            ValueError,
+            r"distances\['posterior'\] must have shape \(2,\)",
+        ),
         (lambda: plots.image_grid(_images(3), 2, titles=["a"]), ValueError, "one entry per image"),
         (lambda: plots.image_grid(_images(3), 0), ValueError, "ncols must be a positive integer"),
         (lambda: plots.loss_curves({"val": [np.nan, np.nan]}), ValueError, r"history\['val'\] has no finite value"),

@@ -13,9 +13,8 @@ import pytest
 import torch
 from torch import nn
 
-from components.core import seeding
-from components.core import weather
-from components.posterior.bijection import IntervalBox, ScaledLogit, Z_MAX, as_interval_box
+from components.core import seeding, weather
+from components.posterior.bijection import Z_MAX, IntervalBox, ScaledLogit, as_interval_box
 from components.posterior.checkpoint import load_checkpoint
 from components.posterior.loss import balance_penalty, npe_loss
 from components.posterior.mixture import EqualMixture
@@ -54,7 +53,9 @@ def test_bijection_matches_numpy_in_float64() -> None:
     )
     # far tails, where torch.softplus would switch to the identity
     zt = np.array([[25.0, -25.0, 40.0, -40.0, 19.9, -20.1]])
-    np.testing.assert_allclose(bij.log_abs_det_jacobian(torch.tensor(zt)).numpy(), weather.log_abs_det_jacobian(zt, box), atol=1e-9)
+    np.testing.assert_allclose(
+        bij.log_abs_det_jacobian(torch.tensor(zt)).numpy(), weather.log_abs_det_jacobian(zt, box), atol=1e-9
+    )
 
 
 def test_bijection_inverse_and_faces() -> None:
@@ -162,10 +163,14 @@ def test_ensemble_is_equal_weight_mixture_and_flow_is_z_space() -> None:
     dist = m.flow(x)
     assert isinstance(dist, EqualMixture)
     z = m.bijection.to_unbounded(theta)
-    torch.testing.assert_close(dist.log_prob(z) - m.bijection.log_abs_det_jacobian(z), m.log_prob(theta, x), rtol=0, atol=1e-10)
+    torch.testing.assert_close(
+        dist.log_prob(z) - m.bijection.log_abs_det_jacobian(z), m.log_prob(theta, x), rtol=0, atol=1e-10
+    )
     single = _model(1, torch.float64)
     d1 = single.flow(x)
-    torch.testing.assert_close(d1.log_prob(z) - single.bijection.log_abs_det_jacobian(z), single.log_prob(theta, x), rtol=0, atol=1e-10)
+    torch.testing.assert_close(
+        d1.log_prob(z) - single.bijection.log_abs_det_jacobian(z), single.log_prob(theta, x), rtol=0, atol=1e-10
+    )
     assert dist.sample((4,), generator=torch.Generator().manual_seed(0)).shape == (4, 6, 6)
 
 
@@ -210,7 +215,9 @@ def test_standardization_fitted_and_embedding_path() -> None:
     embedding = nn.Sequential(nn.Linear(10, 8), nn.Tanh())
     before = embedding[0].weight.detach().clone()
     m = NPE(embedding, 8, BOX, SMALL, input_shape=(10,), seed=1)
-    hist = train(m, (x[:192], theta[:192]), (x[192:], theta[192:]), TrainingConfig(epochs=3, batch_size=64), progress=False)
+    hist = train(
+        m, (x[:192], theta[:192]), (x[192:], theta[192:]), TrainingConfig(epochs=3, batch_size=64), progress=False
+    )
     assert len(hist.records) == 3
     np.testing.assert_allclose(m.feature_mean.numpy(), x[:192].mean(0), rtol=1e-5, atol=1e-5)
     assert not torch.equal(before, embedding[0].weight)  # the embedding is trained with the flow
@@ -244,7 +251,9 @@ def test_balancing_condition_holds_for_the_exact_posterior() -> None:
     # unbiased: on pairs whose a = d + d' − 1 is pure noise, the estimate averages to 0, not to Var(a)/B
     noise = torch.tensor(seeding.rng(1, "test", "noise").normal(size=(4000, 64)))
     zero = torch.zeros(())
-    assert abs(float(balance_penalty(noise, noise, zero, zero).mean())) < 3 * float(balance_penalty(noise, noise, zero, zero).std()) / math.sqrt(4000)
+    assert abs(float(balance_penalty(noise, noise, zero, zero).mean())) < 3 * float(
+        balance_penalty(noise, noise, zero, zero).std()
+    ) / math.sqrt(4000)
 
 
 def test_npe_loss_is_mean_negative_log_prob() -> None:
@@ -257,7 +266,9 @@ def test_npe_loss_is_mean_negative_log_prob() -> None:
         members = m.log_prob_members(theta, m.context(x))
         balanced = npe_loss(m, theta, x, balance=10.0)
     assert float(plain.loss) == pytest.approx(float(-members.mean()), abs=1e-10) and plain.penalty == 0.0
-    assert balanced.penalty > 0 and float(balanced.loss) == pytest.approx(plain.nll + 10.0 * balanced.penalty, rel=1e-10)
+    assert balanced.penalty > 0 and float(balanced.loss) == pytest.approx(
+        plain.nll + 10.0 * balanced.penalty, rel=1e-10
+    )
 
 
 # --- training -------------------------------------------------------------------------------------------------
@@ -281,7 +292,9 @@ def test_training_input_validation_names_the_problem() -> None:
         train(m, (bad_x, th), (x, th), cfg, progress=False)
     bad_th = th.copy()
     bad_th[3, 1] = 101.0
-    with pytest.raises(ValueError, match=r"val θ: 'fog_density' = 101.0 at row 3 is outside the prior box \[0, 100\] %"):
+    with pytest.raises(
+        ValueError, match=r"val θ: 'fog_density' = 101.0 at row 3 is outside the prior box \[0, 100\] %"
+    ):
         train(m, (x, th), (x, bad_th), cfg, progress=False)
     with pytest.raises(ValueError, match="val split is empty"):
         train(m, (x, th), (x[:0], th[:0]), cfg, progress=False)
@@ -307,7 +320,7 @@ def test_training_history_schedule_early_stopping_and_best_weights(tmp_path: obj
     assert hist.best_epoch == int(np.argmin(val)) and hist.best_val_loss == min(val)
     # a tiny training set overfits: early stopping ends the run `patience` epochs after the best one
     assert hist.stopped_early and len(val) - 1 - hist.best_epoch == cfg.patience
-    assert hist.lr[0] == cfg.lr and all(a > b for a, b in zip(hist.lr, hist.lr[1:]))  # cosine decays
+    assert hist.lr[0] == cfg.lr and all(a > b for a, b in zip(hist.lr, hist.lr[1:], strict=False))  # cosine decays
     assert all(t > 0 for t in hist.wall_time)
     with torch.no_grad():  # the model holds the best epoch's weights
         again = npe_loss(m, torch.tensor(thv), torch.tensor(xv))
@@ -325,9 +338,11 @@ def test_training_history_schedule_early_stopping_and_best_weights(tmp_path: obj
         train(_model(), (x, th), (xv, thv), cfg, checkpoint=path, callback=kill_at_stop, progress=False)
     more: list[int] = []
     m2 = _model()
-    resumed = train(m2, (x, th), (xv, thv), cfg, checkpoint=path, callback=lambda r: more.append(r.epoch), progress=False)
+    resumed = train(
+        m2, (x, th), (xv, thv), cfg, checkpoint=path, callback=lambda r: more.append(r.epoch), progress=False
+    )
     assert more == [] and resumed.val_loss == val and resumed.stopped_early
-    assert all(torch.equal(a, b) for a, b in zip(m.state_dict().values(), m2.state_dict().values()))
+    assert all(torch.equal(a, b) for a, b in zip(m.state_dict().values(), m2.state_dict().values(), strict=False))
 
 
 def test_killed_run_resumes_to_the_same_result(tmp_path: object) -> None:
@@ -354,19 +369,38 @@ def test_killed_run_resumes_to_the_same_result(tmp_path: object) -> None:
 
     resumed_model = _model(2)  # a fresh process: same construction, weights from the checkpoint
     epochs_run: list[int] = []
-    resumed = train(resumed_model, (x, th), (xv, thv), cfg, checkpoint=path, callback=lambda r: epochs_run.append(r.epoch), progress=False)
+    resumed = train(
+        resumed_model,
+        (x, th),
+        (xv, thv),
+        cfg,
+        checkpoint=path,
+        callback=lambda r: epochs_run.append(r.epoch),
+        progress=False,
+    )
     assert epochs_run == [3, 4, 5]
     assert resumed.val_loss == ref.val_loss and resumed.train_loss == ref.train_loss and resumed.lr == ref.lr
     assert resumed.best_epoch == ref.best_epoch
-    for (k, a), b in zip(full.state_dict().items(), resumed_model.state_dict().values()):
+    for (k, a), b in zip(full.state_dict().items(), resumed_model.state_dict().values(), strict=False):
         assert torch.equal(a, b), k
 
     # a finished checkpoint: nothing is trained again, the best weights are restored
     again_model = _model(2)
-    again = train(again_model, (x, th), (xv, thv), cfg, checkpoint=path, callback=lambda r: epochs_run.append(-1), progress=False)
+    again = train(
+        again_model, (x, th), (xv, thv), cfg, checkpoint=path, callback=lambda r: epochs_run.append(-1), progress=False
+    )
     assert isinstance(again, History) and again.val_loss == ref.val_loss and -1 not in epochs_run
-    assert all(torch.equal(a, b) for a, b in zip(full.state_dict().values(), again_model.state_dict().values()))
+    assert all(
+        torch.equal(a, b) for a, b in zip(full.state_dict().values(), again_model.state_dict().values(), strict=False)
+    )
     with pytest.raises(ValueError, match="other training settings \\(lr\\)"):
-        train(_model(2), (x, th), (xv, thv), TrainingConfig(**{**cfg.__dict__, "lr": 1e-3}), checkpoint=path, progress=False)
+        train(
+            _model(2),
+            (x, th),
+            (xv, thv),
+            TrainingConfig(**{**cfg.__dict__, "lr": 1e-3}),
+            checkpoint=path,
+            progress=False,
+        )
     with pytest.raises(ValueError, match="other training/validation data"):
         train(_model(2), (x, th), (xv[:64], thv[:64]), cfg, checkpoint=path, progress=False)

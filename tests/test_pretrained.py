@@ -17,39 +17,14 @@ from components.features.backbones import PRETRAINED, MissingWeightsError, get_b
 
 SEED = 2026
 DIMS = {"resnet50": 16, "dinov2": 32, "clip": 32}
-IMAGENET_MEAN, IMAGENET_STD = [0.485, 0.456, 0.406], [0.229, 0.224, 0.225]
-
-
-def _tiny_checkpoint(name: str, folder: Path, seed: int) -> None:
-    """A randomly initialised tiny model of ``name``'s architecture + its image processor, saved."""
-    from transformers.models.bit.image_processing_pil_bit import BitImageProcessorPil
-    from transformers.models.clip.image_processing_pil_clip import CLIPImageProcessorPil
-    from transformers.models.convnext.image_processing_pil_convnext import ConvNextImageProcessorPil
-
-    vit = dict(hidden_size=32, num_hidden_layers=2, num_attention_heads=2, intermediate_size=64, image_size=32, patch_size=8)
-    with torch.random.fork_rng(devices=[]):  # weights drawn from a seeded stream, global RNG untouched
-        torch.manual_seed(seed)
-        if name == "resnet50":
-            model = transformers.ResNetModel(transformers.ResNetConfig(embedding_size=8, hidden_sizes=[8, 16], depths=[1, 1]))
-            processor = ConvNextImageProcessorPil(size={"shortest_edge": 32}, crop_pct=0.875,
-                                                  image_mean=IMAGENET_MEAN, image_std=IMAGENET_STD)
-        elif name == "dinov2":
-            model = transformers.Dinov2Model(transformers.Dinov2Config(**vit))
-            processor = BitImageProcessorPil(size={"shortest_edge": 36}, crop_size={"height": 32, "width": 32},
-                                             image_mean=IMAGENET_MEAN, image_std=IMAGENET_STD)
-        else:
-            model = transformers.CLIPVisionModel(transformers.CLIPVisionConfig(**vit))
-            processor = CLIPImageProcessorPil(size={"shortest_edge": 32}, crop_size={"height": 32, "width": 32})
-    model.save_pretrained(folder)
-    processor.save_pretrained(folder)
 
 
 @pytest.fixture(scope="module")
-def weights(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def weights(tmp_path_factory: pytest.TempPathFactory, tiny_checkpoint) -> Path:
     """``pretrained_dir`` with one tiny checkpoint per pretrained backbone."""
     root = tmp_path_factory.mktemp("pretrained")
     for i, name in enumerate(PRETRAINED):
-        _tiny_checkpoint(name, root / name, seeding.derive_seed(SEED, "test", "checkpoint", i))
+        tiny_checkpoint(name, root / name, seeding.derive_seed(SEED, "test", "checkpoint", i))
     return root
 
 
@@ -131,9 +106,11 @@ def test_missing_weights_fail_fast_and_clearly(name: str, tmp_path: Path, monkey
     monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)  # even online, never the hub's retry loop
     empty_cache = tmp_path / "hub"
     empty_cache.mkdir()
-    for options, where in (({"pretrained_dir": tmp_path / "none"}, str(tmp_path / "none" / name)),
-                           ({"path": tmp_path / "nowhere"}, str(tmp_path / "nowhere")),
-                           ({"cache_dir": empty_cache}, str(empty_cache))):
+    for options, where in (
+        ({"pretrained_dir": tmp_path / "none"}, str(tmp_path / "none" / name)),
+        ({"path": tmp_path / "nowhere"}, str(tmp_path / "nowhere")),
+        ({"cache_dir": empty_cache}, str(empty_cache)),
+    ):
         start = time.perf_counter()
         with pytest.raises(MissingWeightsError) as err:
             get_backbone(name, **options)

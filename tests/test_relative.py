@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from components.core.seeding import rng
 from components.domains.absolute import Domain, mixture_of
 from components.domains.relative import (
     OddDetector,
@@ -23,7 +24,6 @@ from components.domains.relative import (
     relate,
     simplex_distance,
 )
-from components.core.seeding import rng
 from tests.test_domain import GaussianPosterior
 
 LAMBDA = np.array([0.2, 0.3, 0.5])
@@ -40,7 +40,7 @@ def uniform_in(box, n: int, r: np.random.Generator) -> np.ndarray:
 def world():
     post = GaussianPosterior(0.5)
     r = rng(0, "test", "sources")
-    sources = [Domain(post, uniform_in(box, n, r)) for box, n in zip(SOURCE_BOXES, (27, 21, 26))]
+    sources = [Domain(post, uniform_in(box, n, r)) for box, n in zip(SOURCE_BOXES, (27, 21, 26), strict=False)]
     return post, sources
 
 
@@ -320,8 +320,9 @@ def test_calibration_is_seeded_and_follows_the_target_size(world):
     assert a == calibrate_on_sources(sources, 40, 16, 0.05, seed=3, target_size=10)
     assert a.threshold != calibrate_on_sources(sources, 40, 16, 0.05, seed=4, target_size=10).threshold
     # default size: half the sources' mean bag size (27, 21, 26 → 12)
-    assert calibrate_on_sources(sources, 40, 16, 0.05, seed=3) == calibrate_on_sources(sources, 40, 16, 0.05, seed=3,
-                                                                                       target_size=12)
+    assert calibrate_on_sources(sources, 40, 16, 0.05, seed=3) == calibrate_on_sources(
+        sources, 40, 16, 0.05, seed=3, target_size=12
+    )
     # small bags are noisier, so their in-ODD gaps (and the threshold) are larger
     small = calibrate_on_sources(sources, 99, 16, 0.05, seed=5, target_size=4)
     large = calibrate_on_sources(sources, 99, 16, 0.05, seed=5, target_size=30)

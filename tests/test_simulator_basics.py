@@ -9,10 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from components.simulate import ProceduralSimulator, Simulator
-from components.simulate.procedural.calibration import CALIBRATION, calibration_hash, calibration_rows
-from components.simulate.contact_sheet import contact_sheet, save_png
 from components.core.weather import PREDICTED
+from components.simulate.base import Simulator
+from components.simulate.contact_sheet import contact_sheet, save_png
+from components.simulate.procedural import ProceduralSimulator
+from components.simulate.procedural.calibration import CALIBRATION, calibration_hash, calibration_rows
 
 DAY = {
     "cloudiness": 30.0,
@@ -49,7 +50,11 @@ def test_same_weather_and_seed_is_byte_identical_across_fresh_instances(sim: Pro
 
 def test_rendering_never_changes_the_cached_geometry(sim: ProceduralSimulator) -> None:
     sc = sim.scene(11)
-    before = {f.name: getattr(sc, f.name).copy() for f in dataclasses.fields(sc) if isinstance(getattr(sc, f.name), np.ndarray)}
+    before = {
+        f.name: getattr(sc, f.name).copy()
+        for f in dataclasses.fields(sc)
+        if isinstance(getattr(sc, f.name), np.ndarray)
+    }
     rng = np.random.default_rng(0)
     for _ in range(6):
         w = {n: float(rng.uniform(0, 100)) for n in PREDICTED}
@@ -116,7 +121,7 @@ def test_scene_nuisance_varies_across_seeds_like_carla_data() -> None:
 def test_calibration_table_has_units_and_meanings_and_drives_the_version() -> None:
     rows = calibration_rows()
     assert len(rows) > 40
-    for name, value, unit, meaning in rows:
+    for name, _value, unit, meaning in rows:
         assert unit and len(meaning) > 5, name
     other = dataclasses.replace(CALIBRATION, fog_extinction=0.05)
     assert calibration_hash(other) != calibration_hash()

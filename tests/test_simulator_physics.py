@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from components.simulate import ProceduralSimulator
+from components.simulate.procedural import ProceduralSimulator
 from components.simulate.procedural.layout import ROAD, SKY
 from components.simulate.procedural.rain import streak_alpha
 from components.simulate.procedural.shadows import sun_visibility
@@ -60,11 +60,13 @@ def test_fog_lowers_far_contrast_and_hides_the_sky(sim: ProceduralSimulator) -> 
     assert contrast[0] > contrast[1] > contrast[2]
     assert contrast[2] < 0.3 * contrast[0]
     assert sky_std[2] < 0.15 * sky_std[0]
+
     # dense fog: the sky no longer shows the cloud pattern (only the overall light level changes)
     def cloud_pattern(fog: float) -> float:
         a = grey(sim.render({**BASE, "cloudiness": 0.0, "fog_density": fog}, seed)).ravel()
         b = grey(sim.render({**BASE, "cloudiness": 50.0, "fog_density": fog}, seed)).ravel()
         return float((a - b)[sky].std())
+
     assert cloud_pattern(90.0) < 0.1 * cloud_pattern(0.0)
 
 
@@ -83,7 +85,9 @@ def test_clouds_show_only_in_daylight_without_fog(sim: ProceduralSimulator) -> N
     assert effect(fog_density=85.0) < 0.15 * day
     # coverage follows cloudiness: the fraction of sky radiance changed by clouds ≈ cloudiness
     a = grey(sim.radiance(BASE, seed))[sky]
-    covered = [np.mean(np.abs(grey(sim.radiance({**BASE, "cloudiness": c}, seed))[sky] / a - 1) > 0.05) for c in (20, 50, 90)]
+    covered = [
+        np.mean(np.abs(grey(sim.radiance({**BASE, "cloudiness": c}, seed))[sky] / a - 1) > 0.05) for c in (20, 50, 90)
+    ]
     assert covered[0] < covered[1] < covered[2]
     assert 0.05 < covered[0] < 0.5 and covered[2] > 0.8
 

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from components.core import weather
+from components.core.seeding import rng
 from components.domains.relative import OddDetector
 from components.domains.scenarios import GaussianMixtureWeather, in_sub_box
-from components.core.seeding import rng
-from components.domains.sweep import NoiseSweep, experiments_by_eta, summarize
+from components.domains.sweep import NoiseSweep, experiments_by_eta, summarize_sweep
 from tests.test_domain import GaussianPosterior
 from tests.test_relative import OUT_BOX, SOURCE_BOXES, uniform_in
 
@@ -20,7 +20,7 @@ LAMBDA = (0.2, 0.3, 0.5)
 @pytest.fixture(scope="module")
 def sweep() -> NoiseSweep:
     r = rng(1, "test", "sweep")
-    sources = [uniform_in(box, n, r) for box, n in zip(SOURCE_BOXES, (27, 21, 26))]
+    sources = [uniform_in(box, n, r) for box, n in zip(SOURCE_BOXES, (27, 21, 26), strict=False)]
     return NoiseSweep(GaussianPosterior(0.5), uniform_in(OUT_BOX, 60, r), sources, LAMBDA, n_points=16)
 
 
@@ -46,7 +46,7 @@ def test_in_odd_weights_are_recovered_and_out_of_odd_targets_are_detected(sweep)
     assert max(e.d_e for e in in_odd) < 0.02, "weights recovered when the target is in the ODD"
     assert max(e.relative_gap for e in in_odd) < 1e-6
     assert all(e.baseline_gap >= e.gap * (1 - 1e-6) for e in experiments), "the fitted λ̂ is never worse than chance"
-    summary = summarize(experiments, detector)
+    summary = summarize_sweep(experiments, detector)
     assert set(summary) == {"0", "0.3", "1"} and "auc" not in summary["0"]
     assert summary["0.3"]["auc"] > 0.99 and summary["1"]["auc"] == 1.0
     assert summary["1"]["flagged_rate"] == 1.0
@@ -59,7 +59,7 @@ def test_false_alarm_rate_holds_on_fresh_in_odd_targets():
     """In-ODD targets whose gap is not exactly zero (a fresh bag of the source boxes replaces b0 at every η):
     the detector calibrated for α = 0.2 on 60 targets flags fresh ones at rate α within a binomial tolerance."""
     r = rng(2, "test", "sweep", "fresh")
-    sources = [uniform_in(box, n, r) for box, n in zip(SOURCE_BOXES, (27, 21, 26))]
+    sources = [uniform_in(box, n, r) for box, n in zip(SOURCE_BOXES, (27, 21, 26), strict=False)]
     which = r.choice(3, size=80, p=LAMBDA)
     fresh = np.stack([uniform_in(SOURCE_BOXES[k], 1, r)[0] for k in which])  # in the ODD, not an exact mixture
     sweep = NoiseSweep(GaussianPosterior(0.5), fresh, sources, LAMBDA, n_points=16)
@@ -79,14 +79,15 @@ def test_experiments_are_deterministic_and_errors_are_clear(sweep):
     with pytest.raises(ValueError, match="weights must be 2 values on the simplex"):
         NoiseSweep(GaussianPosterior(0.5), np.zeros((3, 2)), [np.zeros((2, 2)), np.ones((2, 2))], (0.5, 0.6))
     with pytest.raises(ValueError, match="η = 0"):
-        summarize([sweep.run(0.5, 0, seed=0)], OddDetector(1.0, 0.05, 100))
+        summarize_sweep([sweep.run(0.5, 0, seed=0)], OddDetector(1.0, 0.05, 100))
 
 
 def test_gaussian_mixture_weather_fixes_all_but_two_parameters():
     box = weather.Box.from_mapping({})
     fixed = {"cloudiness": 30.0, "sun_altitude_angle": 45.0, "wind_intensity": 20.0, "precipitation_deposits": 30.0}
-    dist = GaussianMixtureWeather(fixed, np.array([1.0, 3.0]), np.array([[10.0, 20.0], [70.0, 80.0]]),
-                                  np.array([[2.0, 2.0], [3.0, 3.0]]), box)
+    dist = GaussianMixtureWeather(
+        fixed, np.array([1.0, 3.0]), np.array([[10.0, 20.0], [70.0, 80.0]]), np.array([[2.0, 2.0], [3.0, 3.0]]), box
+    )
     theta = dist.sample(20000, rng(0, "test", "mixture"))
     assert theta.shape == (20000, 6) and np.all(box.contains(theta))
     for name, value in fixed.items():
@@ -121,13 +122,13 @@ def test_fresh_targets_use_held_out_images_of_the_sources_weather():
     on fresh in-ODD targets flags fresh ones at about its rate."""
     r = rng(3, "test", "sweep", "pools")
     sizes = (27, 21, 26)
-    sources = [uniform_in(box, n, r) for box, n in zip(SOURCE_BOXES, sizes)]
-    pools = [uniform_in(box, 3 * n, r) for box, n in zip(SOURCE_BOXES, sizes)]
+    sources = [uniform_in(box, n, r) for box, n in zip(SOURCE_BOXES, sizes, strict=False)]
+    pools = [uniform_in(box, 3 * n, r) for box, n in zip(SOURCE_BOXES, sizes, strict=False)]
     sweep = NoiseSweep(GaussianPosterior(0.5), uniform_in(OUT_BOX, 60, r), sources, LAMBDA, 16, fresh_pools=pools)
     w = sweep.target_weights(0.0, seed=1, fresh=True)
     offsets = np.cumsum([0, 60, *sizes, *(3 * n for n in sizes)])
     assert w[: offsets[4]].sum() == 0, "the source bags themselves carry no weight in a fresh target"
-    for k, (lam, n) in enumerate(zip(LAMBDA, sizes)):
+    for k, (lam, n) in enumerate(zip(LAMBDA, sizes, strict=False)):
         part = w[offsets[4 + k] : offsets[5 + k]]
         assert np.count_nonzero(part) == n and part.sum() == pytest.approx(lam)
     assert not np.array_equal(w, sweep.target_weights(0.0, seed=2, fresh=True)), "a new subset per experiment"
@@ -144,5 +145,10 @@ def test_fresh_targets_use_held_out_images_of_the_sources_weather():
     with pytest.raises(ValueError, match="fresh targets need fresh_pools"):
         plain.run(0.0, 0, seed=0, fresh=True)
     with pytest.raises(ValueError, match="fresh pool of b2 has 3 observations"):
-        NoiseSweep(GaussianPosterior(0.5), uniform_in(OUT_BOX, 5, r), sources, LAMBDA,
-                   fresh_pools=[pools[0], pools[1][:3], pools[2]])
+        NoiseSweep(
+            GaussianPosterior(0.5),
+            uniform_in(OUT_BOX, 5, r),
+            sources,
+            LAMBDA,
+            fresh_pools=[pools[0], pools[1][:3], pools[2]],
+        )

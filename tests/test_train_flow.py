@@ -12,8 +12,19 @@ import torch
 from components.posterior.store import load_npe
 from tests.conftest import write_params
 
-FAST = {"train.epochs": 3, "train.embedding_epochs": 2, "train.patience": 5,
-        "train.flow": {"transforms": 1, "hidden_features": [16], "bins": 4, "passes": 2, "ensemble": 1}}
+FAST = {
+    "train.epochs": 3,
+    "train.embedding_epochs": 2,
+    "train.patience": 5,
+    "train.flow": {
+        "transforms": 1,
+        "hidden_features": [16],
+        "bins": 4,
+        "passes": 2,
+        "ensemble": 1,
+        "standardize": True,
+    },
+}
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +48,9 @@ def test_train_logs_the_grid_in_mlflow_and_saves_a_loadable_model(project, monke
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     metrics = train_model("cues", 16, str(params))
     assert np.isfinite(metrics["test_nll"]) and metrics["epochs_run"] == 3
-    assert json.loads((folder / "reports/train/cues-16.json").read_text()) == json.loads((folder / "models/cues-16/metrics.json").read_text())
+    assert json.loads((folder / "reports/train/cues-16.json").read_text()) == json.loads(
+        (folder / "models/cues-16/metrics.json").read_text()
+    )
 
     model, header = load_npe(folder / "models/cues-16/model.pt")
     assert header["backbone"] == "cues" and not header["trainable_backbone"]
@@ -54,7 +67,9 @@ def test_train_logs_the_grid_in_mlflow_and_saves_a_loadable_model(project, monke
     runs = client.search_runs([exp.experiment_id])
     children = {r.data.tags["pidc.model"]: r for r in runs if "mlflow.parentRunId" in r.data.tags}
     parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
-    assert {"cues-16", "cnn-8"} <= set(children) and len(parents) == 1, "one parent run for the grid, one child per model"
+    assert {"cues-16", "cnn-8"} <= set(children) and len(parents) == 1, (
+        "one parent run for the grid, one child per model"
+    )
     assert parents[0].info.status == "FINISHED" and all(r.info.status == "FINISHED" for r in children.values())
     child = children["cues-16"]
     assert child.data.tags["mlflow.parentRunId"] == parents[0].info.run_id
@@ -84,7 +99,8 @@ def test_export_evaluate_champion(project, monkeypatch):
 
     from components.export.runtime import OnnxPosterior
     from flows.evaluate import evaluate
-    from flows.export import export_model, load_registered_model
+    from flows.export import export_model
+    from flows.tracking import download_registered_model
     from flows.train import train_model
 
     folder, params = project
@@ -133,14 +149,22 @@ def test_export_evaluate_champion(project, monkeypatch):
         assert np.isfinite(m["test_nll"]) and np.isfinite(m["info_gain_nats"]) and m["ppc_score"] <= 1
     assert json.loads((folder / "reports/task1/metrics.json").read_text()) == metrics
     plots = folder / "reports/task1/plots"
-    for f in ("coverage.png", "superiority.png", "cues-8/ppc.png", "cues-8/histograms-0.png", "cnn-16/corner-zoom-0.png"):
+    for f in (
+        "coverage.png",
+        "superiority.png",
+        "cues-8/ppc.png",
+        "cues-8/histograms-0.png",
+        "cnn-16/corner-zoom-0.png",
+    ):
         assert (plots / f).stat().st_size > 5000, f
     rows = json.loads((folder / "reports/task1/coverage.json").read_text())
     assert len(rows) == 5 * 101 and {"model", "level", "coverage"} == set(rows[0])
 
     client = mlflow.MlflowClient(uri)
     exp = client.get_experiment_by_name("pidc-grid")
-    run = client.search_runs([exp.experiment_id], "tags.`pidc.model` = 'cues-8'", order_by=["attributes.start_time DESC"])[0]
+    run = client.search_runs(
+        [exp.experiment_id], "tags.`pidc.model` = 'cues-8'", order_by=["attributes.start_time DESC"]
+    )[0]
     assert run.data.metrics["task1.calibration_error"] == pytest.approx(metrics["cues-8"]["calibration_error"])
 
     # the MLflow Model Registry: one name per model, versions tagged with their metrics, the champion alias
@@ -153,10 +177,17 @@ def test_export_evaluate_champion(project, monkeypatch):
     assert holders == [f"pidc-{best}"], "exactly one registered model holds the alias"
     version = client.get_model_version_by_alias(f"pidc-{best}", "champion")
     assert float(version.tags["task1.calibration_error"]) == pytest.approx(metrics[best]["calibration_error"], rel=1e-5)
-    assert "train.test_nll" in version.tags and version.run_id == client.search_runs(
-        [exp.experiment_id], f"tags.`pidc.model` = '{best}'", order_by=["attributes.start_time DESC"])[0].info.run_id
+    assert (
+        "train.test_nll" in version.tags
+        and version.run_id
+        == client.search_runs(
+            [exp.experiment_id], f"tags.`pidc.model` = '{best}'", order_by=["attributes.start_time DESC"]
+        )[0].info.run_id
+    )
 
-    loaded = load_registered_model(champion["uri"])  # the torch-free posterior from the registered model's files
+    loaded = OnnxPosterior.load(
+        download_registered_model(champion["uri"])
+    )  # the torch-free posterior from the registered model's files
     local = OnnxPosterior.load(folder / "registry" / best)
     x = np.random.default_rng(0).normal(size=(4, *local.input_shape)).astype(np.float32)
     theta = local.sample(x, 1, seed=0)[:, 0]
@@ -169,7 +200,7 @@ def test_export_evaluate_champion(project, monkeypatch):
 def test_evaluate_refuses_a_model_with_another_theta_order(project, tmp_path):
     from components.core import weather
     from components.core.config import load_params
-    from flows.evaluate import check_model_matches_data
+    from components.evaluate.task1 import check_model_matches_data
 
     folder, params = project
     box = load_params(params).box

@@ -31,7 +31,9 @@ def test_table_has_the_papers_13_parameters_in_order():
 
 
 def _good():
-    return {n: (weather.PARAMETERS[n].low + weather.PARAMETERS[n].high) / 2 for n in weather.PREDICTED} | {"sun_azimuth_angle": 10.0}
+    return {n: (weather.PARAMETERS[n].low + weather.PARAMETERS[n].high) / 2 for n in weather.PREDICTED} | {
+        "sun_azimuth_angle": 10.0
+    }
 
 
 def test_complete_fills_fixed_values_in_canonical_order():

@@ -3,19 +3,20 @@
 One row per draw: ``image`` (a label, e.g. the file path), ``draw`` (0-based index within that image), then the d
 parameters in physical units. ``.csv`` is written with the standard library; ``.parquet`` needs pyarrow (checked when
 the writer is created, before any work). The file appears only on :meth:`DrawsWriter.close` (temporary file + atomic
-rename), so an interrupted run leaves no partial table.
+rename, :func:`components.core.files.atomic_path`), so an interrupted run leaves no partial table.
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
-import os
 from collections.abc import Sequence
 from pathlib import Path
 from types import TracebackType
 
 import numpy as np
+
+from components.core.files import atomic_path
 
 __all__ = ["DRAWS_FORMATS", "check_draws_path", "DrawsWriter"]
 
@@ -41,6 +42,10 @@ def check_draws_path(path: str | Path) -> str:
     return fmt
 
 
+class _Discarded(Exception):
+    """Raised into the writer's :func:`atomic_path` to drop the temporary file."""
+
+
 class DrawsWriter:
     """Write draws ``(m, d)`` per image to ``path`` (``.csv`` or ``.parquet``); use as a context manager.
 
@@ -56,8 +61,8 @@ class DrawsWriter:
         self.names = tuple(names)
         self.rows = 0
         self.format = check_draws_path(self.path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = self.path.with_name(f".{self.path.name}.tmp-{os.getpid()}")
+        self._atomic = contextlib.ExitStack()  # holds the atomic_path: closing it puts the file in place
+        self._tmp = self._atomic.enter_context(atomic_path(self.path))
         self._file = None
         self._csv = None
         self._parquet = None
@@ -78,8 +83,10 @@ class DrawsWriter:
             import pyarrow as pa
             import pyarrow.parquet as pq
 
-            columns = {"image": pa.array([image] * a.shape[0], pa.string()),
-                       "draw": pa.array(np.arange(a.shape[0], dtype=np.int64))}
+            columns = {
+                "image": pa.array([image] * a.shape[0], pa.string()),
+                "draw": pa.array(np.arange(a.shape[0], dtype=np.int64)),
+            }
             columns.update({name: pa.array(a[:, j]) for j, name in enumerate(self.names)})
             table = pa.table(columns)
             if self._parquet is None:
@@ -89,21 +96,23 @@ class DrawsWriter:
 
     def close(self) -> None:
         """Finish the file and move it into place (an empty table still gets its header/schema)."""
-        if self.format == "csv":
-            assert self._file is not None
-            self._file.flush()
-            os.fsync(self._file.fileno())
-            self._file.close()
-        else:
-            import pyarrow as pa
-            import pyarrow.parquet as pq
+        try:
+            if self.format == "csv":
+                assert self._file is not None
+                self._file.close()
+            else:
+                import pyarrow as pa
+                import pyarrow.parquet as pq
 
-            if self._parquet is None:
-                fields = [pa.field("image", pa.string()), pa.field("draw", pa.int64())]
-                fields += [pa.field(n, pa.float64()) for n in self.names]
-                self._parquet = pq.ParquetWriter(self._tmp, pa.schema(fields))
-            self._parquet.close()
-        os.replace(self._tmp, self.path)
+                if self._parquet is None:
+                    fields = [pa.field("image", pa.string()), pa.field("draw", pa.int64())]
+                    fields += [pa.field(n, pa.float64()) for n in self.names]
+                    self._parquet = pq.ParquetWriter(self._tmp, pa.schema(fields))
+                self._parquet.close()
+        except BaseException:
+            self.discard()
+            raise
+        self._atomic.close()  # fsync + os.replace (the temporary file is removed if that fails)
 
     def discard(self) -> None:
         """Drop the temporary file (after an error); the destination is left untouched."""
@@ -111,7 +120,8 @@ class DrawsWriter:
             if handle is not None:
                 with contextlib.suppress(Exception):  # closing a half-written file after another error
                     handle.close()
-        self._tmp.unlink(missing_ok=True)
+        with contextlib.suppress(_Discarded), self._atomic:
+            raise _Discarded  # leaving atomic_path with an error removes the temporary file
 
     def __enter__(self) -> DrawsWriter:
         return self

@@ -8,23 +8,65 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from components.core import weather
 from components.cli.errors import CLIError
+from components.core import weather
 
 #: Named starting weathers for ``pidc render --preset`` (pidc's own, in the spirit of CARLA's presets).
 PRESETS: dict[str, dict[str, float]] = {
-    "clear_noon": dict(cloudiness=5, fog_density=0, precipitation=0, sun_altitude_angle=60, wind_intensity=10,
-                       precipitation_deposits=0, sun_azimuth_angle=120),
-    "cloudy_noon": dict(cloudiness=85, fog_density=2, precipitation=0, sun_altitude_angle=55, wind_intensity=20,
-                        precipitation_deposits=0, sun_azimuth_angle=120),
-    "foggy_morning": dict(cloudiness=30, fog_density=60, precipitation=0, sun_altitude_angle=12, wind_intensity=5,
-                          precipitation_deposits=0, sun_azimuth_angle=80),
-    "hard_rain_noon": dict(cloudiness=100, fog_density=7, precipitation=100, sun_altitude_angle=45, wind_intensity=100,
-                           precipitation_deposits=90, sun_azimuth_angle=120),
-    "wet_sunset": dict(cloudiness=20, fog_density=5, precipitation=0, sun_altitude_angle=4, wind_intensity=10,
-                       precipitation_deposits=70, sun_azimuth_angle=250),
-    "clear_night": dict(cloudiness=10, fog_density=3, precipitation=0, sun_altitude_angle=-40, wind_intensity=10,
-                        precipitation_deposits=30, sun_azimuth_angle=0),
+    "clear_noon": dict(
+        cloudiness=5,
+        fog_density=0,
+        precipitation=0,
+        sun_altitude_angle=60,
+        wind_intensity=10,
+        precipitation_deposits=0,
+        sun_azimuth_angle=120,
+    ),
+    "cloudy_noon": dict(
+        cloudiness=85,
+        fog_density=2,
+        precipitation=0,
+        sun_altitude_angle=55,
+        wind_intensity=20,
+        precipitation_deposits=0,
+        sun_azimuth_angle=120,
+    ),
+    "foggy_morning": dict(
+        cloudiness=30,
+        fog_density=60,
+        precipitation=0,
+        sun_altitude_angle=12,
+        wind_intensity=5,
+        precipitation_deposits=0,
+        sun_azimuth_angle=80,
+    ),
+    "hard_rain_noon": dict(
+        cloudiness=100,
+        fog_density=7,
+        precipitation=100,
+        sun_altitude_angle=45,
+        wind_intensity=100,
+        precipitation_deposits=90,
+        sun_azimuth_angle=120,
+    ),
+    "wet_sunset": dict(
+        cloudiness=20,
+        fog_density=5,
+        precipitation=0,
+        sun_altitude_angle=4,
+        wind_intensity=10,
+        precipitation_deposits=70,
+        sun_azimuth_angle=250,
+    ),
+    "clear_night": dict(
+        cloudiness=10,
+        fog_density=3,
+        precipitation=0,
+        sun_altitude_angle=-40,
+        wind_intensity=10,
+        precipitation_deposits=30,
+        sun_azimuth_angle=0,
+    ),
 }
 
 
@@ -64,8 +106,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
     if args.height <= 0 or args.width <= 0:
         raise CLIError(f"--height and --width must be positive, got {args.height}×{args.width}")
 
-    from components.simulate import ProceduralSimulator
     from components.simulate.contact_sheet import save_png
+    from components.simulate.procedural import ProceduralSimulator
 
     sim = ProceduralSimulator(args.height, args.width)
     image = sim.render(w, args.seed)
@@ -74,8 +116,35 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_config_check(args: argparse.Namespace) -> int:
+    import yaml
+
+    from components.core.config import ConfigError, load_params
+
+    try:
+        params = load_params(args.params, profile=args.profile)
+    except ConfigError as e:
+        raise CLIError("; ".join(line.strip() for line in str(e).splitlines() if line.strip())) from None
+    overrides = (
+        "" if params.profile == "default" else f" (overrides: {args.params.parent / 'profiles' / params.profile}.yaml)"
+    )
+    header = f"# {args.params}, profile {params.profile}{overrides}: valid; the resolved config:"
+    text = yaml.safe_dump(params.model_dump(mode="json"), sort_keys=False, allow_unicode=True)
+    if args.write is not None:  # the whole resolved config, e.g. params.yaml for `dvc repro` on another profile
+        from components.core.files import atomic_write_bytes
+
+        atomic_write_bytes(args.write, f"{header}\n{text}".encode())
+        print(f"{args.params}, profile {params.profile}: valid; the resolved config written to {args.write}")
+        return 0
+    print(header)
+    print(text, end="")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="pidc", description="Physically interpretable, probabilistic domain characterization.")
+    parser = argparse.ArgumentParser(
+        prog="pidc", description="Physically interpretable, probabilistic domain characterization."
+    )
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("weather", help="list the weather parameters, their ranges and the presets")
@@ -83,12 +152,39 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("render", help="render one image of a scene under a weather (embedded simulator)")
     p.add_argument("--preset", choices=sorted(PRESETS), help="a starting weather (then --set overrides)")
-    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="a weather parameter, e.g. --set fog_density=40")
+    p.add_argument(
+        "--set", action="append", metavar="NAME=VALUE", help="a weather parameter, e.g. --set fog_density=40"
+    )
     p.add_argument("--seed", type=int, help="scene seed (required): same seed, same scene")
     p.add_argument("--height", type=int, default=256)
     p.add_argument("--width", type=int, default=256)
     p.add_argument("-o", "--out", type=Path, default=Path("render.png"), help="PNG path (default: render.png)")
     p.set_defaults(func=_cmd_render)
+
+    p = sub.add_parser("config", help="the pipeline's params file")
+    config = p.add_subparsers(dest="config_command", required=True)
+    c = config.add_parser("check", help="validate a params file and print its resolved config (runs nothing)")
+    c.add_argument(
+        "--params",
+        type=Path,
+        default=Path("params.yaml"),
+        metavar="FILE",
+        help="the params file (default: params.yaml in the current folder)",
+    )
+    c.add_argument(
+        "--profile",
+        metavar="NAME",
+        help="the profile to resolve (default: the file's `profile` key); NAME = default or a "
+        "file name of profiles/ beside FILE",
+    )
+    c.add_argument(
+        "--write",
+        type=Path,
+        metavar="OUT",
+        help="write the resolved config to OUT instead of printing it (e.g. --profile paper --write "
+        "params.yaml switches the pipeline to the paper profile; `git checkout params.yaml` switches back)",
+    )
+    c.set_defaults(func=_cmd_config_check)
 
     from components.cli.models import add_registry_commands
 

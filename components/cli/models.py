@@ -129,8 +129,9 @@ def _read_all(model: Any, paths: list[Path], command: str, desc: str) -> _Read:
     parts = [read for read, _ in _read_batches(model, paths, command, desc)]
     if not parts:
         raise CLIError(f"none of the {len(paths)} images could be read")
-    return _Read([p for r in parts for p in r.paths], [n for r in parts for n in r.notes],
-                 np.concatenate([r.x for r in parts]))
+    return _Read(
+        [p for r in parts for p in r.paths], [n for r in parts for n in r.notes], np.concatenate([r.x for r in parts])
+    )
 
 
 def _check_corner_path(path: Path | None) -> None:
@@ -224,8 +225,11 @@ def _cmd_characterize(args: argparse.Namespace) -> int:
         writer.close()
         print(f"wrote {writer.rows} draws of {done} images to {writer.path}", file=sys.stderr)
     skipped = len(paths) - done
-    print(f"characterized {done} image{'s' * (done != 1)} with {model.name} ({n} draws each, seed {seed})"
-          + (f"; skipped {skipped}" if skipped else ""), file=sys.stderr)
+    print(
+        f"characterized {done} image{'s' * (done != 1)} with {model.name} ({n} draws each, seed {seed})"
+        + (f"; skipped {skipped}" if skipped else ""),
+        file=sys.stderr,
+    )
     return 0
 
 
@@ -298,12 +302,16 @@ def _cmd_domain(args: argparse.Namespace) -> int:
         by_name = {p.name: p for p in paths}
         missing = [name for name in weights if name not in by_name]
         if missing:
-            raise CLIError(f"--weights {args.weights}: {len(missing)} listed image(s) not found among the images of "
-                           f"{folder}, e.g. {missing[0]!r}")
+            raise CLIError(
+                f"--weights {args.weights}: {len(missing)} listed image(s) not found among the images of "
+                f"{folder}, e.g. {missing[0]!r}"
+            )
         ignored = len(paths) - len(weights)
         if ignored:
-            print(f"pidc domain: note: {ignored} image(s) of {folder} are not in {args.weights}: left out",
-                  file=sys.stderr)
+            print(
+                f"pidc domain: note: {ignored} image(s) of {folder} are not in {args.weights}: left out",
+                file=sys.stderr,
+            )
         paths = [by_name[name] for name in weights if weights[name] > 0]
     model = _load_model(args)
     bag = _read_all(model, paths, "domain", f"domain {folder.name}")
@@ -352,42 +360,55 @@ def _cmd_relate(args: argparse.Namespace) -> int:
         raise CLIError(f"--false-alarm-rate must be in (0, 1), got {alpha:g}")
     need = math.ceil((1.0 - alpha) / alpha - 1e-9)
     if args.calibration_targets < need:
-        raise CLIError(f"--calibration-targets must be ≥ {need} for --false-alarm-rate {alpha:g}, "
-                       f"got {args.calibration_targets}")
+        raise CLIError(
+            f"--calibration-targets must be ≥ {need} for --false-alarm-rate {alpha:g}, got {args.calibration_targets}"
+        )
     listed = [_list([f]) for f in folders]
     model = _load_model(args)
-    bags = [_read_all(model, paths, "relate", f"read {f.name}") for f, paths in zip(folders, listed)]
+    bags = [_read_all(model, paths, "relate", f"read {f.name}") for f, paths in zip(folders, listed, strict=False)]
     target, *sources = [Domain(model.posterior, b.x) for b in bags]
     names = [f.name for f in folders[1:]]
     if len(set(names)) < len(names):
         names = [str(f) for f in folders[1:]]
     try:
         rel = relate(target, sources, args.points, derive_seed(seed, "relate"))
-        detector = calibrate_on_sources(sources, args.calibration_targets, args.points, alpha,
-                                        derive_seed(seed, "calibrate"), target_size=len(target),
-                                        progress=sys.stderr.isatty())
+        detector = calibrate_on_sources(
+            sources,
+            args.calibration_targets,
+            args.points,
+            alpha,
+            derive_seed(seed, "calibrate"),
+            target_size=len(target),
+            progress=sys.stderr.isatty(),
+        )
     except ValueError as e:
         raise CLIError(str(e)) from None
     outside = detector.decide(rel.relative_gap)
     print(f"target {folders[0]}: {len(target)} images; model {model.name}; {args.points} points (seed {seed})")
     width = max(len("source"), *map(len, names))
     print(f"{'source':<{width}}  {'images':>6}  {'weight λ̂':>9}")
-    for name, s, lam in zip(names, sources, rel.weights):
+    for name, s, lam in zip(names, sources, rel.weights, strict=False):
         print(f"{name:<{width}}  {len(s):>6}  {lam:>9.4f}")
     print(f"mean squared gap δ: {rel.gap:.4g} (density², physical units)")
     print(f"relative gap δ/mean(b²): {rel.relative_gap:.4g}")
     if rel.degenerate:
-        print("degenerate: yes — the sources are linearly dependent (e.g. the same images): λ̂ is not unique; "
-              "shown is the minimum-norm one")
+        print(
+            "degenerate: yes — the sources are linearly dependent (e.g. the same images): λ̂ is not unique; "
+            "shown is the minimum-norm one"
+        )
     else:
         print("degenerate: no")
     held = min(len(target), sum(len(s) // 2 for s in sources))  # calibrate_on_sources holds out ≤ half a source
-    print(f"threshold: {detector.threshold:.4g} (relative gap; {detector.n_calibration} in-ODD targets of "
-          f"{held} images held out of the sources; false-alarm rate {alpha:g})")
+    print(
+        f"threshold: {detector.threshold:.4g} (relative gap; {detector.n_calibration} in-ODD targets of "
+        f"{held} images held out of the sources; false-alarm rate {alpha:g})"
+    )
     if k == 1:
         print("note: one source, so λ̂ = 1; the verdict says whether the target looks like that source")
-    print(f"verdict: {'OUTSIDE the ODD' if outside else 'inside the ODD'} "
-          f"(relative gap {'>' if outside else '≤'} threshold; false-alarm rate {alpha:g})")
+    print(
+        f"verdict: {'OUTSIDE the ODD' if outside else 'inside the ODD'} "
+        f"(relative gap {'>' if outside else '≤'} threshold; false-alarm rate {alpha:g})"
+    )
     return 0
 
 
@@ -395,9 +416,12 @@ def _cmd_relate(args: argparse.Namespace) -> int:
 
 
 def _model_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--model", default="champion",
-                   help="'champion' (the model reports/task1/champion.json names), a model id under the registry, "
-                        "or an exported folder (default: champion)")
+    p.add_argument(
+        "--model",
+        default="champion",
+        help="'champion' (the model reports/task1/champion.json names), a model id under the registry, "
+        "or an exported folder (default: champion)",
+    )
     p.add_argument("--registry", type=Path, default=Path("registry"), help="the registry folder (default: registry)")
     p.add_argument("--seed", type=int, default=0, help="seed of every random draw (default 0)")
 
@@ -409,17 +433,29 @@ def add_registry_commands(sub: Any) -> None:
     _model_options(p)
     p.add_argument("--samples", type=int, default=1000, help="posterior draws per image (default 1000)")
     p.add_argument("--samples-out", type=Path, metavar="FILE", help="write the draws: FILE.csv or FILE.parquet")
-    p.add_argument("--corner", type=Path, metavar="FILE.png",
-                   help="corner plot; for several images one per image, named FILE-<image stem>.png")
+    p.add_argument(
+        "--corner",
+        type=Path,
+        metavar="FILE.png",
+        help="corner plot; for several images one per image, named FILE-<image stem>.png",
+    )
     p.set_defaults(func=_cmd_characterize)
 
     p = sub.add_parser("domain", help="a folder of images as one weighted bag: the domain's weather distribution")
     p.add_argument("folder", metavar="FOLDER")
     how = p.add_mutually_exclusive_group()
-    how.add_argument("--weights", type=Path, metavar="FILE.csv",
-                     help="rows <image file name>,<weight> (header optional); images not listed are left out")
-    how.add_argument("--decay", type=float, metavar="RATE",
-                     help="the images in file-name order are a stream; weights × RATE ∈ (0, 1] per image of age")
+    how.add_argument(
+        "--weights",
+        type=Path,
+        metavar="FILE.csv",
+        help="rows <image file name>,<weight> (header optional); images not listed are left out",
+    )
+    how.add_argument(
+        "--decay",
+        type=float,
+        metavar="RATE",
+        help="the images in file-name order are a stream; weights × RATE ∈ (0, 1] per image of age",
+    )
     _model_options(p)
     p.add_argument("--samples", type=int, default=1000, help="draws from the domain's distribution (default 1000)")
     p.add_argument("--corner", type=Path, metavar="FILE.png", help="corner plot of the domain's distribution")
@@ -427,12 +463,24 @@ def add_registry_commands(sub: Any) -> None:
 
     p = sub.add_parser("relate", help="a target folder as a mixture of source folders, and the out-of-ODD verdict")
     p.add_argument("target", metavar="TARGET_FOLDER")
-    p.add_argument("sources", nargs="+", metavar="SOURCE_FOLDER",
-                   help="source domains (one folder each); with one source λ̂ = 1 and the verdict tests likeness")
+    p.add_argument(
+        "sources",
+        nargs="+",
+        metavar="SOURCE_FOLDER",
+        help="source domains (one folder each); with one source λ̂ = 1 and the verdict tests likeness",
+    )
     _model_options(p)
     p.add_argument("--points", type=int, default=16, help="n_W, points drawn from the target (default 16)")
-    p.add_argument("--false-alarm-rate", type=float, default=0.05,
-                   help="rate at which in-ODD targets are declared outside (default 0.05)")
-    p.add_argument("--calibration-targets", type=int, default=100,
-                   help="in-ODD targets held out of the sources to set the threshold (default 100)")
+    p.add_argument(
+        "--false-alarm-rate",
+        type=float,
+        default=0.05,
+        help="rate at which in-ODD targets are declared outside (default 0.05)",
+    )
+    p.add_argument(
+        "--calibration-targets",
+        type=int,
+        default=100,
+        help="in-ODD targets held out of the sources to set the threshold (default 100)",
+    )
     p.set_defaults(func=_cmd_relate)

@@ -1,8 +1,11 @@
 """Typed, validated configuration: ``params.yaml`` parsed once into frozen objects.
 
-Every knob of the pipeline lives in ``params.yaml`` (the default profile) or a second params file
-(``profiles/paper.yaml``); this module is its only reader. An unknown key, a missing key or a bad
-value raises :class:`ConfigError` naming the file and the dotted key.
+Every setting of the pipeline is written in ``params.yaml`` and nowhere else: the models here have no
+defaults, so an unknown key, a missing key or a bad value raises :class:`ConfigError` naming the file
+and the dotted key. A profile (``profiles/<name>.yaml`` beside ``params.yaml``) holds only overrides of
+those settings; ``params.yaml``'s ``profile`` key (or :func:`load_params`'s ``profile`` argument) picks it
+and its overrides are merged over the file (mappings recursively; lists and scalars replace). ``default``
+is ``params.yaml`` as it is.
 
 Sections are owned by the components that use them; each is a small pydantic model here so that one
 file shows every setting and its meaning.
@@ -19,10 +22,13 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from components.core import weather
 
-__all__ = ["ConfigError", "Params", "load_params", "PROJECT_ROOT"]
+__all__ = ["ConfigError", "Params", "load_params", "parse_params", "profile_names", "DEFAULT_PROFILE", "PROJECT_ROOT"]
 
 #: The repository root (where ``params.yaml`` and ``dvc.yaml`` live).
-PROJECT_ROOT = Path(__file__).resolve().parents[1]
+PROJECT_ROOT = Path(__file__).resolve().parents[2]
+
+#: The profile that is the params file as it is (no overrides).
+DEFAULT_PROFILE = "default"
 
 
 class ConfigError(ValueError):
@@ -40,49 +46,49 @@ NonNegativeInt = Annotated[int, Field(ge=0)]
 class CarlaConfig(_Section):
     """Connection and scene settings of the CARLA backend (``simulator.backend: carla``)."""
 
-    host: str = "127.0.0.1"
-    port: Annotated[int, Field(gt=0, lt=65536)] = 2000
-    timeout_s: Annotated[float, Field(gt=0)] = 10.0
+    host: str
+    port: Annotated[int, Field(gt=0, lt=65536)]
+    timeout_s: Annotated[float, Field(gt=0)]
     #: maps drawn from by the scene seed; empty = every map the server offers
-    maps: tuple[str, ...] = ()
-    fixed_delta_seconds: Annotated[float, Field(gt=0, le=0.1)] = 0.05
+    maps: tuple[str, ...]
+    fixed_delta_seconds: Annotated[float, Field(gt=0, le=0.1)]
     #: ticks between setting the weather and capturing (auto-exposure settles)
-    settle_ticks: PositiveInt = 10
-    traffic_manager_port: Annotated[int, Field(gt=0, lt=65536)] = 8000
-    max_vehicles: NonNegativeInt = 15
-    max_pedestrians: NonNegativeInt = 10
+    settle_ticks: PositiveInt
+    traffic_manager_port: Annotated[int, Field(gt=0, lt=65536)]
+    max_vehicles: NonNegativeInt
+    max_pedestrians: NonNegativeInt
     #: horizontal field of view of the RGB camera, degrees
-    fov: Annotated[float, Field(gt=0, lt=180)] = 90.0
+    fov: Annotated[float, Field(gt=0, lt=180)]
 
 
 class SimulatorConfig(_Section):
     """Which simulator renders the data, and at what resolution (pixels)."""
 
-    backend: Literal["procedural", "carla"] = "procedural"
-    height: PositiveInt = 128
-    width: PositiveInt = 128
-    carla: CarlaConfig = CarlaConfig()
+    backend: Literal["procedural", "carla"]
+    height: PositiveInt
+    width: PositiveInt
+    carla: CarlaConfig
 
 
 class RunnerConfig(_Section):
     """The Prefect task runner of fan-out flows: threads, processes, or a Dask cluster."""
 
-    kind: Literal["threads", "processes", "dask"] = "processes"
-    workers: PositiveInt = 2
+    kind: Literal["threads", "processes", "dask"]
+    workers: PositiveInt
     #: address of an existing Dask scheduler (``tcp://host:8786``); null = a local cluster
-    dask_address: str | None = None
+    dask_address: str | None
 
 
 class DataConfig(_Section):
     """The simulated dataset: split sizes, sharding and scene reuse."""
 
-    root: str = "data"
+    root: str
     #: number of images per split; the train split must cover the largest training size
-    splits: dict[Literal["train", "val", "test"], PositiveInt] = {"train": 10000, "val": 2000, "test": 2000}
-    shard_size: PositiveInt = 500
+    splits: dict[Literal["train", "val", "test"], PositiveInt]
+    shard_size: PositiveInt
     #: consecutive images rendered in the same scene (a map and spawn point under many weathers)
-    images_per_scene: PositiveInt = 8
-    runner: RunnerConfig = RunnerConfig()
+    images_per_scene: PositiveInt
+    runner: RunnerConfig
 
     @field_validator("splits")
     @classmethod
@@ -96,30 +102,32 @@ class DataConfig(_Section):
 class ContactSheetConfig(_Section):
     """The generate stage's contact sheet: each row sweeps one parameter from low to high."""
 
-    steps: Annotated[int, Field(ge=2)] = 6
-    scenes: PositiveInt = 2
-    path: str = "reports/data/contact_sheet.png"
+    steps: Annotated[int, Field(ge=2)]
+    scenes: PositiveInt
+    path: str
 
 
 class BackbonesConfig(_Section):
     """The image backbones of the grid and where pretrained weights are found."""
 
-    names: tuple[str, ...] = ("cues", "cnn", "tiny")
+    names: tuple[str, ...]
     #: a local directory holding one sub-folder of Hugging Face weights per pretrained backbone
-    pretrained_dir: str | None = None
-    batch_size: PositiveInt = 256
+    pretrained_dir: str | None
+    batch_size: PositiveInt
 
 
 class FlowParams(_Section):
     """The conditional neural spline flow (``components.posterior.FlowConfig``)."""
 
-    transforms: PositiveInt = 3
-    hidden_features: tuple[PositiveInt, ...] = (128, 128)
-    bins: Annotated[int, Field(ge=2)] = 8
+    transforms: PositiveInt
+    hidden_features: tuple[PositiveInt, ...]
+    bins: Annotated[int, Field(ge=2)]
     #: 2 = coupling flow (fast sampling); null = fully autoregressive
-    passes: PositiveInt | None = 2
+    passes: PositiveInt | None
     #: flows in an equal-weight ensemble (calibration beyond the paper; 1 = a single flow)
-    ensemble: PositiveInt = 1
+    ensemble: PositiveInt
+    #: standardize the flow's inputs with a mean/std fitted on the training set
+    standardize: bool
 
 
 class VariantConfig(_Section):
@@ -130,47 +138,60 @@ class VariantConfig(_Section):
     backbone: str
     size: PositiveInt
     #: λ of balanced NPE for this model
-    balance: Annotated[float, Field(ge=0)] = 0.0
+    balance: Annotated[float, Field(ge=0)]
     #: flows in this model's equal-weight ensemble
-    ensemble: PositiveInt = 1
+    ensemble: PositiveInt
 
 
 class TrainConfig(_Section):
     """The grid of models (backbone × training size) and how each is trained."""
 
     #: training-set sizes: nested prefixes of the train split
-    sizes: tuple[PositiveInt, ...] = (1000, 3000, 10000)
+    sizes: tuple[PositiveInt, ...]
     #: the MLflow experiment of the grid
-    experiment: str = "pidc-grid"
-    flow: FlowParams = FlowParams()
-    epochs: PositiveInt = 60
+    experiment: str
+    flow: FlowParams
+    epochs: PositiveInt
     #: maximum epochs for a backbone trained jointly with the flow (costly on a CPU)
-    embedding_epochs: PositiveInt = 8
-    batch_size: PositiveInt = 256
-    lr: Annotated[float, Field(gt=0)] = 1e-3
-    weight_decay: Annotated[float, Field(ge=0)] = 1e-4
-    schedule: Literal["cosine", "plateau", "constant"] = "cosine"
+    embedding_epochs: PositiveInt
+    batch_size: PositiveInt
+    lr: Annotated[float, Field(gt=0)]
+    weight_decay: Annotated[float, Field(ge=0)]
+    schedule: Literal["cosine", "plateau", "constant"]
+    #: the schedule's floor (where cosine ends; the plateau schedule's minimum)
+    min_lr: Annotated[float, Field(ge=0)]
+    #: the plateau schedule: lr × plateau_factor after plateau_patience epochs without improvement
+    plateau_factor: Annotated[float, Field(gt=0, lt=1)]
+    plateau_patience: PositiveInt
     #: early stopping: epochs without improvement of the validation loss
-    patience: PositiveInt = 10
-    clip_norm: Annotated[float, Field(gt=0)] | None = 5.0
+    patience: PositiveInt
+    #: the improvement of the validation loss that counts (nats)
+    min_delta: Annotated[float, Field(ge=0)]
+    clip_norm: Annotated[float, Field(gt=0)] | None
     #: λ of balanced NPE (calibration beyond the paper; 0 = plain NPE)
-    balance: Annotated[float, Field(ge=0)] = 0.0
+    balance: Annotated[float, Field(ge=0)]
     #: calibrated variants trained and evaluated beside the grid
-    variants: dict[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")], VariantConfig] = Field(default_factory=dict)
+    variants: dict[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")], VariantConfig]
+
+    @model_validator(mode="after")
+    def _min_lr(self) -> TrainConfig:
+        if self.min_lr > self.lr:
+            raise ValueError(f"min_lr ({self.min_lr:g}) must not exceed lr ({self.lr:g})")
+        return self
 
 
 class EvaluateConfig(_Section):
     """Task I evaluation of every model of the grid on the test split."""
 
     #: test images evaluated (the first ones of the test split)
-    images: PositiveInt = 500
+    images: PositiveInt
     #: posterior samples per image (HPD credibility, coverage, π); the 99.73 % HDR of the plots needs ≥ 371
-    samples: Annotated[int, Field(ge=400)] = 1000
+    samples: Annotated[int, Field(ge=400)]
     #: images given a posterior predictive check, and re-renders per check (posterior and prior each)
-    ppc_images: PositiveInt = 4
-    ppc_renders: Annotated[int, Field(ge=2)] = 6
+    ppc_images: PositiveInt
+    ppc_renders: Annotated[int, Field(ge=2)]
     #: test images shown as histograms and corner plots per model
-    example_images: NonNegativeInt = 1
+    example_images: NonNegativeInt
 
 
 class ExportConfig(_Section):
@@ -178,11 +199,11 @@ class ExportConfig(_Section):
 
     #: torch → ONNX exporter: ``torchscript`` (~5 s a model here; deprecated by torch but checked against torch at
     #: export time) or ``dynamo`` (torch.export, torch's maintained route; 50–130 s a model here)
-    exporter: Literal["torchscript", "dynamo"] = "torchscript"
+    exporter: Literal["torchscript", "dynamo"]
     #: registered model name = prefix + model id (e.g. ``pidc-cues-1000``)
-    registered_prefix: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]*$")] = "pidc-"
+    registered_prefix: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]*$")]
     #: the Task I metric (lower is better) whose best model gets the alias ``champion`` after the evaluation
-    champion_metric: Literal["calibration_error", "test_nll"] = "calibration_error"
+    champion_metric: Literal["calibration_error", "test_nll"]
 
 
 class GaussianMode(_Section):
@@ -197,31 +218,28 @@ class Task2Config(_Section):
     """Task II: a bag of rendered images whose weather follows a known distribution → its characterization."""
 
     #: the registry model characterizing the bag: a model id, or ``champion`` (best calibrated, after evaluate)
-    model: str = "champion"
+    model: str
     #: images in the bag (all equally weighted), rendered in fresh scenes
-    images: PositiveInt = 1000
-    images_per_scene: PositiveInt = 8
+    images: PositiveInt
+    images_per_scene: PositiveInt
     #: the fixed predicted parameters (every one but fog_density and precipitation), physical units
-    fixed: dict[str, float] = Field(default_factory=lambda: {"cloudiness": 30.0, "sun_altitude_angle": 45.0,
-                                                             "wind_intensity": 20.0, "precipitation_deposits": 30.0})
+    fixed: dict[str, float]
     #: the Gaussian mixture over (fog_density, precipitation), truncated to the prior box
-    modes: tuple[GaussianMode, ...] = (
-        GaussianMode(weight=0.4, mean=(15.0, 20.0), std=(6.0, 8.0)),
-        GaussianMode(weight=0.35, mean=(60.0, 75.0), std=(8.0, 8.0)),
-        GaussianMode(weight=0.25, mean=(35.0, 50.0), std=(5.0, 6.0)),
-    )
+    modes: tuple[GaussianMode, ...]
     #: draws from the estimate and from the true distribution (metrics and plots)
-    samples: Annotated[int, Field(ge=100)] = 20000
+    samples: Annotated[int, Field(ge=100)]
     #: the estimate's highest-density region whose share of the true mass is reported
-    hdr_level: Annotated[float, Field(gt=0, lt=1)] = 0.95
+    hdr_level: Annotated[float, Field(gt=0, lt=1)]
 
     @field_validator("fixed")
     @classmethod
     def _fixed_params(cls, v: dict[str, float]) -> dict[str, float]:
         expected = set(weather.PREDICTED) - {"fog_density", "precipitation"}
         if set(v) != expected:
-            raise ValueError(f"must give exactly {sorted(expected)} (fog_density and precipitation follow the "
-                             f"mixture), got {sorted(v)}")
+            raise ValueError(
+                f"must give exactly {sorted(expected)} (fog_density and precipitation follow the "
+                f"mixture), got {sorted(v)}"
+            )
         return v
 
 
@@ -238,22 +256,22 @@ class Task3Config(_Section):
     """Task III: targets mixing three source bags and an out-of-ODD bag b0 at noise level η (the paper's sweep)."""
 
     #: the registry model characterizing every bag: a model id, or ``champion``
-    model: str = "champion"
+    model: str
     #: b0 (out of the ODD; disjoint from the others), then the sources b1, b2, b3
-    bags: dict[Annotated[str, Field(pattern=r"^b[0-9]+$")], BagConfig] = Field(default_factory=dict)
+    bags: dict[Annotated[str, Field(pattern=r"^b[0-9]+$")], BagConfig]
     #: the true mixture weights λ of the sources b1, b2, … (on the simplex)
-    weights: tuple[Annotated[float, Field(ge=0)], ...] = (0.2, 0.3, 0.5)
+    weights: tuple[Annotated[float, Field(ge=0)], ...]
     #: noise levels η: the share of b0 in the target
-    etas: tuple[Annotated[float, Field(ge=0, le=1)], ...] = tuple(round(0.1 * i, 1) for i in range(11))
-    repetitions: PositiveInt = 30
+    etas: tuple[Annotated[float, Field(ge=0, le=1)], ...]
+    repetitions: PositiveInt
     #: n_W, points drawn from the target's characterization where the densities are compared
-    n_points: PositiveInt = 16
+    n_points: PositiveInt
     #: the ODD decision's false-alarm rate α, and the in-ODD (η = 0) targets calibrating its threshold
-    false_alarm_rate: Annotated[float, Field(gt=0, lt=1)] = 0.05
-    calibration_targets: PositiveInt = 100
+    false_alarm_rate: Annotated[float, Field(gt=0, lt=1)]
+    calibration_targets: PositiveInt
     #: beyond the paper: also run fresh targets (their in-ODD part from other test images of the sources' sub-boxes);
     #: the ODD decision is then calibrated and judged on them (see components.domains.sweep)
-    fresh_targets: bool = True
+    fresh_targets: bool
 
     @model_validator(mode="after")
     def _consistent(self) -> Task3Config:
@@ -287,28 +305,22 @@ class Task3Config(_Section):
 
 
 class Params(_Section):
-    """The whole ``params.yaml``."""
+    """The whole ``params.yaml``, resolved: the default settings with the chosen profile's overrides merged over them."""
 
-    profile: str = "default"
+    #: the profile whose overrides were merged over the file's settings (``default``: none)
+    profile: str
     #: the root of every random draw in the pipeline
-    seed: NonNegativeInt = 2026
-    simulator: SimulatorConfig = SimulatorConfig()
-    prior: dict[str, tuple[float, float]] = Field(default_factory=dict)
-    data: DataConfig = DataConfig()
-    contact_sheet: ContactSheetConfig = ContactSheetConfig()
-    backbones: BackbonesConfig = BackbonesConfig()
-    train: TrainConfig = TrainConfig()
-    evaluate: EvaluateConfig = EvaluateConfig()
-    export: ExportConfig = ExportConfig()
-    task2: Task2Config = Task2Config()
-    task3: Task3Config = Task3Config(bags={
-        "b0": BagConfig(box={"sun_altitude_angle": (-90.0, -15.0), "fog_density": (50.0, 100.0)}, max_images=176),
-        "b1": BagConfig(box={"sun_altitude_angle": (15.0, 90.0), "precipitation": (0.0, 30.0),
-                             "cloudiness": (0.0, 40.0)}, max_images=27),
-        "b2": BagConfig(box={"sun_altitude_angle": (15.0, 90.0), "precipitation": (60.0, 100.0)}, max_images=21),
-        "b3": BagConfig(box={"sun_altitude_angle": (0.0, 90.0), "fog_density": (0.0, 40.0),
-                             "cloudiness": (60.0, 100.0)}, max_images=26),
-    })
+    seed: NonNegativeInt
+    simulator: SimulatorConfig
+    prior: dict[str, tuple[float, float]]
+    data: DataConfig
+    contact_sheet: ContactSheetConfig
+    backbones: BackbonesConfig
+    train: TrainConfig
+    evaluate: EvaluateConfig
+    export: ExportConfig
+    task2: Task2Config
+    task3: Task3Config
 
     @field_validator("prior")
     @classmethod
@@ -326,11 +338,15 @@ class Params(_Section):
             )
         for name, v in self.train.variants.items():
             if v.backbone not in self.backbones.names or v.size not in self.train.sizes:
-                raise ValueError(f"train.variants.{name} needs a backbone in backbones.names and a size in "
-                                 f"train.sizes, got {v.backbone!r} and {v.size}")
+                raise ValueError(
+                    f"train.variants.{name} needs a backbone in backbones.names and a size in "
+                    f"train.sizes, got {v.backbone!r} and {v.size}"
+                )
         if self.evaluate.images > self.data.splits["test"]:
-            raise ValueError(f"evaluate.images is {self.evaluate.images} but the test split has only "
-                             f"{self.data.splits['test']} images")
+            raise ValueError(
+                f"evaluate.images is {self.evaluate.images} but the test split has only "
+                f"{self.data.splits['test']} images"
+            )
         return self
 
     @property
@@ -364,15 +380,79 @@ def parse_params(data: object, *, source: str | Path = "<params>") -> Params:
         raise ConfigError(_format_error(Path(source), err)) from None
 
 
-def load_params(path: str | Path | None = None) -> Params:
-    """Read and validate a params file (default: ``params.yaml`` at the project root)."""
-    p = Path(path) if path is not None else PROJECT_ROOT / "params.yaml"
+def _read_yaml(p: Path, what: str) -> object:
     try:
         text = p.read_text()
     except OSError as e:
-        raise ConfigError(f"{p}: cannot read params file ({e.strerror})") from None
+        raise ConfigError(f"{p}: cannot read {what} ({e.strerror})") from None
     try:
-        data = yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise ConfigError(f"{p}: not valid YAML: {e}") from None
-    return parse_params(data, source=p)
+
+
+def profile_names(params_path: str | Path) -> list[str]:
+    """The profiles a params file can use: ``default`` and every ``profiles/<name>.yaml`` beside it."""
+    folder = Path(params_path).parent / "profiles"
+    found = sorted(f.stem for f in folder.glob("*.yaml")) if folder.is_dir() else []
+    return [DEFAULT_PROFILE, *(n for n in found if n != DEFAULT_PROFILE)]
+
+
+def _merge(base: dict, override: dict, where: str, unknown: list[str]) -> dict:
+    """``override`` merged over ``base``: mappings recursively, anything else replaced; keys not in ``base`` are
+    collected (dotted) in ``unknown``."""
+    out = dict(base)
+    for k, v in override.items():
+        key = f"{where}.{k}" if where else str(k)
+        if k not in base:
+            unknown.append(key)
+        elif isinstance(base[k], dict) and isinstance(v, dict):
+            out[k] = _merge(base[k], v, key, unknown)
+        else:
+            out[k] = v
+    return out
+
+
+def _apply_profile(data: dict, p: Path, name: object) -> tuple[dict, str]:
+    """The params ``data`` of file ``p`` with profile ``name``'s overrides merged in, and the source to name."""
+    names = profile_names(p)
+    if not isinstance(name, str) or name not in names:
+        raise ConfigError(
+            f"{p}: profile: unknown profile {name!r}; profiles found: {', '.join(names)} "
+            f"(default, or profiles/<name>.yaml beside {p.name})"
+        )
+    if name == DEFAULT_PROFILE:
+        return {**data, "profile": name} if "profile" in data else data, str(p)
+    pp = p.parent / "profiles" / f"{name}.yaml"
+    overrides = _read_yaml(pp, "profile")
+    if overrides is None:
+        overrides = {}
+    if not isinstance(overrides, dict):
+        raise ConfigError(f"{pp}: the top level must be a mapping of overrides, got {type(overrides).__name__}")
+    if "profile" in overrides:
+        raise ConfigError(f"{pp}: profile: unknown key (a profile's name is its file name; it cannot set one)")
+    unknown: list[str] = []
+    merged = _merge(data, overrides, "", unknown)
+    if unknown:
+        raise ConfigError("\n".join(f"{pp}: {key}: unknown key (not a setting of {p})" for key in unknown))
+    if "profile" in data:
+        merged["profile"] = name
+    return merged, f"{p} with {pp}"
+
+
+def load_params(path: str | Path | None = None, profile: str | None = None) -> Params:
+    """Read, resolve and validate a params file (default: ``params.yaml`` at the project root).
+
+    The profile is ``profile`` if given, else the file's ``profile`` key; unless it is ``default``, the overrides of
+    ``<params dir>/profiles/<profile>.yaml`` are merged over the file's settings before validation."""
+    p = Path(path) if path is not None else PROJECT_ROOT / "params.yaml"
+    data = _read_yaml(p, "params file")
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{p}: the top level must be a mapping, got {type(data).__name__}")
+    source = str(p)
+    name = profile if profile is not None else data.get("profile")
+    if name is not None or "profile" in data:
+        data, source = _apply_profile(data, p, name)
+    return parse_params(data, source=source)

@@ -185,8 +185,11 @@ def list_images(paths: str | Path | Iterable[str | Path]) -> list[Path]:
     out: list[Path] = []
     for p in map(Path, paths):
         if p.is_dir():
-            found = [f for f in p.iterdir() if f.is_file() and not f.name.startswith(".")
-                     and f.suffix.lower() in IMAGE_EXTENSIONS]
+            found = [
+                f
+                for f in p.iterdir()
+                if f.is_file() and not f.name.startswith(".") and f.suffix.lower() in IMAGE_EXTENSIONS
+            ]
             if not found:
                 raise ImageError(f"{p}: no image files in this folder ({', '.join(sorted(IMAGE_EXTENSIONS))})")
             out.extend(sorted(found, key=_natural_key))

@@ -127,7 +127,9 @@ def validate_weather(weather: Mapping[str, object], *, where: str = "") -> dict[
     ``where`` prefixes messages (e.g. a file name).
     """
     if not isinstance(weather, Mapping):
-        raise ValueError(f"{where}a weather must be a mapping of CARLA parameter names to numbers, got {type(weather).__name__}")
+        raise ValueError(
+            f"{where}a weather must be a mapping of CARLA parameter names to numbers, got {type(weather).__name__}"
+        )
     out: dict[str, float] = {}
     for name, value in weather.items():
         if name not in PARAMETERS:
@@ -179,7 +181,7 @@ def weather_from_theta(theta: Iterable[float], sun_azimuth_angle: float) -> dict
     t = np.asarray(list(theta), dtype=np.float64)
     if t.shape != (len(PREDICTED),):
         raise ValueError(f"θ must have {len(PREDICTED)} values ({', '.join(PREDICTED)}), got shape {t.shape}")
-    w = {n: float(v) for n, v in zip(PREDICTED, t)}
+    w = {n: float(v) for n, v in zip(PREDICTED, t, strict=False)}
     w["sun_azimuth_angle"] = float(sun_azimuth_angle)
     return complete_weather(w)
 
@@ -207,7 +209,9 @@ class Box:
         low = np.atleast_1d(np.asarray(self.low, dtype=np.float64)).copy()
         high = np.atleast_1d(np.asarray(self.high, dtype=np.float64)).copy()
         if low.ndim != 1 or low.shape != high.shape or low.size == 0:
-            raise ValueError(f"a box needs two 1-D arrays of equal length >= 1, got shapes {low.shape} and {high.shape}")
+            raise ValueError(
+                f"a box needs two 1-D arrays of equal length >= 1, got shapes {low.shape} and {high.shape}"
+            )
         d = low.size
         names = tuple(self.names) or tuple(f"θ{i}" for i in range(d))
         units = tuple(self.units) or tuple(PARAMETERS[n].unit if n in PARAMETERS else "" for n in names)

@@ -1,0 +1,11 @@
+"""domains — Tasks II and III: domains as weighted bags of images, and targets against sources.
+
+- :mod:`~components.domains.absolute`: ``Domain`` (p̂_𝒟(θ) = Σᵢ wᵢ q(θ | xᵢ)), ``ExponentialFilter`` (Task II).
+- :mod:`~components.domains.relative`: simplex weights λ, the gap δ, the ODD decision (``relate``,
+  ``OddDetector``, ``calibrate_on_sources``) (Task III).
+- :mod:`~components.domains.scenarios`: known weather distributions (Gaussian mixtures, sub-boxes).
+- :mod:`~components.domains.sweep`: the noise sweep over η (``NoiseSweep``, ``summarize_sweep``).
+- :mod:`~components.domains.task2`, :mod:`~components.domains.task3`: what the ``task2`` and ``task3`` stages run.
+"""
+
+__all__ = ["absolute", "relative", "scenarios", "sweep", "task2", "task3"]

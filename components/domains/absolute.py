@@ -21,6 +21,7 @@ from collections.abc import Sequence
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+from scipy.special import logsumexp
 
 from components.core.seeding import derive_seed, rng
 
@@ -161,7 +162,7 @@ class Domain:
                 if np.any(np.isnan(lq)) or np.any(lq == np.inf):
                     raise ValueError("posterior.log_prob returned NaN or +inf: the estimator is not a proper density")
                 part = lq.reshape(idx.size, mb) + self._log_w[i0 : i0 + per_call, None]
-                acc = np.logaddexp(acc, _logsumexp0(part))
+                acc = np.logaddexp(acc, logsumexp(part, axis=0))  # −inf where a column is all −inf
             out[t0 : t0 + mb] = acc
         return out
 
@@ -182,14 +183,6 @@ class Domain:
                 raise ValueError(f"posterior.sample returned shape {draws.shape}, expected ({idx.size}, 1, d)")
             parts.append(draws[:, 0, :])
         return np.concatenate(parts, axis=0).astype(np.float64, copy=False)
-
-
-def _logsumexp0(a: np.ndarray) -> np.ndarray:
-    """logsumexp over axis 0, −inf where a column is all −inf."""
-    top = np.max(a, axis=0)
-    safe = np.where(np.isfinite(top), top, 0.0)
-    with np.errstate(divide="ignore"):
-        return np.log(np.sum(np.exp(a - safe), axis=0)) + safe
 
 
 def mixture_of(domains: Sequence[Domain], weights: np.ndarray | Sequence[float]) -> Domain:
@@ -215,7 +208,7 @@ def mixture_of(domains: Sequence[Domain], weights: np.ndarray | Sequence[float])
                 f"domains[{k}] has observations of shape {d.bag.shape[1:]}, domains[0] has {first.bag.shape[1:]}"
             )
     bag = np.concatenate([d.bag for d in domains], axis=0)
-    w = np.concatenate([lk * d.weights for lk, d in zip(lam, domains)])
+    w = np.concatenate([lk * d.weights for lk, d in zip(lam, domains, strict=False)])
     return Domain(first.posterior, bag, w)
 
 

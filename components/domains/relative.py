@@ -423,12 +423,16 @@ def calibrate_on_sources(
         raise ValueError("calibrate_on_sources needs at least one source domain")
     for k, s in enumerate(sources):
         if not isinstance(s, Domain):
-            raise TypeError(f"sources[{k}] must be a components.domains.absolute.Domain (a bag to hold out from), "
-                            f"got {type(s).__name__}")
+            raise TypeError(
+                f"sources[{k}] must be a components.domains.absolute.Domain (a bag to hold out from), "
+                f"got {type(s).__name__}"
+            )
     for k, s in enumerate(sources[1:], start=1):
         if s.posterior is not sources[0].posterior or s.bag.shape[1:] != sources[0].bag.shape[1:]:
-            raise ValueError(f"sources[{k}] uses another posterior or observation shape than sources[0]: the "
-                             "calibration targets mix members of all sources under one estimator")
+            raise ValueError(
+                f"sources[{k}] uses another posterior or observation shape than sources[0]: the "
+                "calibration targets mix members of all sources under one estimator"
+            )
     alpha = float(false_alarm_rate)
     if not (0.0 < alpha < 1.0):
         raise ValueError(f"false_alarm_rate must be in (0, 1), got {false_alarm_rate!r}")
@@ -442,8 +446,10 @@ def calibrate_on_sources(
     positive = [np.flatnonzero(s.weights > 0) for s in sources]
     capacity = np.array([p.size // 2 for p in positive], dtype=np.int64)
     if capacity.sum() == 0:
-        raise ValueError("the sources are too small to hold out a calibration target: at least one needs two "
-                         "members of positive weight")
+        raise ValueError(
+            "the sources are too small to hold out a calibration target: at least one needs two "
+            "members of positive weight"
+        )
     k = len(sources)
     steps = range(int(n_targets))
     if progress:
@@ -455,14 +461,15 @@ def calibrate_on_sources(
         r = rng(seed, "relative", "calibration", t)
         counts = _held_out_counts(r.dirichlet(np.ones(k)), capacity, int(target_size), r)
         held, reduced = [], []
-        for s, members, m in zip(sources, positive, counts):
+        for s, members, m in zip(sources, positive, counts, strict=False):
             w = s.weights[members]
             out = r.choice(members, size=int(m), replace=False, p=w / w.sum()) if m else members[:0]
             keep = np.setdiff1d(np.arange(len(s)), out)
             held.append(s.bag[out])
             reduced.append(Domain(s.posterior, s.bag[keep], s.weights[keep]))
         target = Domain(sources[0].posterior, np.concatenate(held))
-        rel = relate(target, reduced, n_points, derive_seed(seed, "relative", "calibration", t, "relate"),
-                     solver=solver)
+        rel = relate(
+            target, reduced, n_points, derive_seed(seed, "relative", "calibration", t, "relate"), solver=solver
+        )
         gaps[t] = rel.relative_gap
     return OddDetector.calibrate(gaps, alpha)

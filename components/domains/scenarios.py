@@ -52,7 +52,9 @@ class GaussianMixtureWeather:
         for name, value in self.fixed.items():
             i = self.box.names.index(name)
             if not self.box.low[i] <= value <= self.box.high[i]:
-                raise ValueError(f"fixed {name} = {value} is outside the prior [{self.box.low[i]:g}, {self.box.high[i]:g}]")
+                raise ValueError(
+                    f"fixed {name} = {value} is outside the prior [{self.box.low[i]:g}, {self.box.high[i]:g}]"
+                )
         object.__setattr__(self, "weights", w / w.sum())
         object.__setattr__(self, "means", mu)
         object.__setattr__(self, "stds", sd)

@@ -18,7 +18,7 @@ noise of a bag, the decision threshold is calibrated on realistic in-ODD targets
 out-of-ODD weather can be told from that noise. Each experiment relates the target to the sources (:func:`components.domains.relative.relate`, n_W points):
 λ̂, the gap δ(λ̂), its relative version, δ for a λ drawn at random on the simplex (the chance baseline) and
 d_E = ‖λ̂ − λ‖₂. :meth:`NoiseSweep.calibrate` calibrates the out-of-ODD decision on in-ODD targets (η = 0) of its own
-seeds; :func:`summarize` gives the per-η medians, detection rates at the calibrated threshold and the ROC AUC of
+seeds; :func:`summarize_sweep` gives the per-η medians, detection rates at the calibrated threshold and the ROC AUC of
 η against η = 0.
 
 Everything works on the posterior's *context* (the embedding of each image computed once):
@@ -33,12 +33,12 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from components.evaluate.diagnostics import roc_curve
+from components.core.seeding import derive_seed, rng
 from components.domains.absolute import Domain, Posterior
 from components.domains.relative import OddDetector, SimplexLeastSquares, chance_baseline_gap, relate, simplex_distance
-from components.core.seeding import derive_seed, rng
+from components.evaluate.diagnostics import roc_curve
 
-__all__ = ["Experiment", "NoiseSweep", "summarize", "experiments_by_eta"]
+__all__ = ["Experiment", "NoiseSweep", "summarize_sweep", "experiments_by_eta"]
 
 
 @dataclass(frozen=True)
@@ -72,8 +72,15 @@ class NoiseSweep:
             its source bag): enables fresh targets (``run(..., fresh=True)``).
     """
 
-    def __init__(self, posterior: Posterior, out_of_odd: np.ndarray, sources: Sequence[np.ndarray],
-                 weights: Sequence[float], n_points: int = 16, fresh_pools: Sequence[np.ndarray] | None = None) -> None:
+    def __init__(
+        self,
+        posterior: Posterior,
+        out_of_odd: np.ndarray,
+        sources: Sequence[np.ndarray],
+        weights: Sequence[float],
+        n_points: int = 16,
+        fresh_pools: Sequence[np.ndarray] | None = None,
+    ) -> None:
         bags = [np.asarray(out_of_odd)] + [np.asarray(s) for s in sources]
         for k, bag in enumerate(bags):
             if bag.ndim < 1 or bag.shape[0] == 0:
@@ -82,10 +89,12 @@ class NoiseSweep:
         if fresh_pools is not None:
             if len(pools) != len(sources):
                 raise ValueError(f"fresh_pools needs one pool per source ({len(sources)}), got {len(pools)}")
-            for k, (pool, bag) in enumerate(zip(pools, bags[1:]), start=1):
+            for k, (pool, bag) in enumerate(zip(pools, bags[1:], strict=False), start=1):
                 if pool.ndim < 1 or pool.shape[0] < bag.shape[0]:
-                    raise ValueError(f"fresh pool of b{k} has {pool.shape[0] if pool.ndim else 0} observations; a fresh "
-                                     f"target needs at least the bag's {bag.shape[0]}")
+                    raise ValueError(
+                        f"fresh pool of b{k} has {pool.shape[0] if pool.ndim else 0} observations; a fresh "
+                        f"target needs at least the bag's {bag.shape[0]}"
+                    )
         lam = np.asarray(weights, dtype=np.float64)
         if lam.shape != (len(sources),) or np.any(lam < 0) or not np.isclose(lam.sum(), 1.0):
             raise ValueError(f"weights must be {len(sources)} values on the simplex, got {lam.tolist()}")
@@ -140,13 +149,20 @@ class NoiseSweep:
         baseline = float(chance_baseline_gap(relation.A, relation.b, s)[0])
         mean_b2 = float(np.mean(relation.b**2))
         return Experiment(
-            eta=float(eta), repetition=int(repetition), weights=relation.weights.tolist(), gap=relation.gap,
-            relative_gap=relation.relative_gap, baseline_gap=baseline, baseline_relative_gap=baseline / mean_b2,
-            d_e=simplex_distance(relation.weights, self.weights), degenerate=relation.degenerate,
+            eta=float(eta),
+            repetition=int(repetition),
+            weights=relation.weights.tolist(),
+            gap=relation.gap,
+            relative_gap=relation.relative_gap,
+            baseline_gap=baseline,
+            baseline_relative_gap=baseline / mean_b2,
+            d_e=simplex_distance(relation.weights, self.weights),
+            degenerate=relation.degenerate,
         )
 
-    def calibrate(self, n_targets: int, false_alarm_rate: float, seed: int, fresh: bool = False
-                  ) -> tuple[OddDetector, np.ndarray]:
+    def calibrate(
+        self, n_targets: int, false_alarm_rate: float, seed: int, fresh: bool = False
+    ) -> tuple[OddDetector, np.ndarray]:
         """The out-of-ODD detector on the relative gap, calibrated on ``n_targets`` in-ODD targets (η = 0, fresh ones
         when ``fresh``) drawn with seeds of their own (independent of :meth:`run`'s); returns it and the gaps."""
         s = derive_seed(seed, "sweep", "calibration")
@@ -154,7 +170,7 @@ class NoiseSweep:
         return OddDetector.calibrate(gaps, false_alarm_rate), gaps
 
 
-def summarize(experiments: Sequence[Experiment], detector: OddDetector) -> dict[str, dict[str, float]]:
+def summarize_sweep(experiments: Sequence[Experiment], detector: OddDetector) -> dict[str, dict[str, float]]:
     """Per η (keys formatted ``"0.1"``): medians of d_E, δ, the chance baseline δ and the relative gaps; the share
     flagged out of the ODD at the detector's threshold; and (η > 0) the AUC of the relative gap and of δ against the
     η = 0 experiments."""

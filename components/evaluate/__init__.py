@@ -1,0 +1,11 @@
+"""evaluate — the ``evaluate`` stage (Task I): how good is a posterior on labelled test images.
+
+- :mod:`~components.evaluate.diagnostics`: HPD credibility, expected coverage, calibration error, superiority π,
+  energy distance, HDR mass, ROC curves.
+- :mod:`~components.evaluate.ppc`: the quantitative posterior predictive check.
+- :mod:`~components.evaluate.task1`: per-model draws, metrics and PPCs of the stage.
+- :mod:`~components.evaluate.champion`: the rule that names the champion.
+- :mod:`~components.evaluate.summary`: per-parameter medians and highest-density intervals of draws (the CLI).
+"""
+
+__all__ = ["diagnostics", "ppc", "task1", "champion", "summary"]

@@ -56,12 +56,25 @@ def _render_all(simulator, thetas: np.ndarray, azimuth: float, scene_seed: int) 
     return np.stack([simulator.render(weather.weather_from_theta(t, azimuth), scene_seed) for t in thetas])
 
 
-def posterior_predictive_check(simulator, observed: np.ndarray, scene_seed: int, azimuth: float,
-                               posterior_theta: np.ndarray, prior_theta: np.ndarray) -> PPCResult:
+def posterior_predictive_check(
+    simulator,
+    observed: np.ndarray,
+    scene_seed: int,
+    azimuth: float,
+    posterior_theta: np.ndarray,
+    prior_theta: np.ndarray,
+) -> PPCResult:
     """Re-render scene ``scene_seed`` (azimuth in degrees) under posterior and prior draws θ ``(k, 6)``."""
     if observed.shape != (simulator.height, simulator.width, 3):
-        raise ValueError(f"observed image {observed.shape} does not match the simulator's "
-                         f"{(simulator.height, simulator.width, 3)}")
+        raise ValueError(
+            f"observed image {observed.shape} does not match the simulator's {(simulator.height, simulator.width, 3)}"
+        )
+    for what, draws in (("posterior_theta", posterior_theta), ("prior_theta", prior_theta)):
+        if np.ndim(draws) != 2 or np.shape(draws)[0] < 1 or np.shape(draws)[1] != len(weather.PREDICTED):
+            raise ValueError(
+                f"{what} must be k ≥ 1 draws of θ, shape (k, {len(weather.PREDICTED)}): a PPC needs at "
+                f"least one posterior and one prior re-render; got shape {np.shape(draws)}"
+            )
     post = _render_all(simulator, np.asarray(posterior_theta), azimuth, scene_seed)
     prior = _render_all(simulator, np.asarray(prior_theta), azimuth, scene_seed)
     d_post, d_prior = image_distance(post, observed), image_distance(prior, observed)

@@ -85,7 +85,7 @@ def format_summary(summary: Summary, box: Box, moments: bool = False) -> str:
     if moments:
         header += f"{'mean':>9}{'std':>9}"
     lines = [header.rstrip()]
-    for j, (name, unit) in enumerate(zip(box.names, box.units)):
+    for j, (name, unit) in enumerate(zip(box.names, box.units, strict=False)):
         row = f"{f'{name} [{unit}]' if unit else name:<30}{summary.median[j]:>9.2f}  "
         row += f"{f'[{summary.low[j]:.2f}, {summary.high[j]:.2f}]':<20}"
         if moments:

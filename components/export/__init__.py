@@ -1,0 +1,11 @@
+"""export — the ``export@<model>`` stages and what reads their output: ONNX graphs in ``registry/<model>/``.
+
+- :mod:`~components.export.onnx`: ``export_posterior(model, folder, card=…, exporter=…)``: context, log-density,
+  sampling and whole-density graphs, checked against torch, and the model card.
+- :mod:`~components.export.runtime`: ``OnnxPosterior``, the torch-free posterior (``log_prob``, ``sample``,
+  ``context``/``on_context``) on onnxruntime.
+- :mod:`~components.export.lookup`: models of the ``registry/`` folder by id or ``champion``, paired with their
+  backbone (``load_registered``, ``RegisteredPosterior``, ``CHAMPION_POINTER``).
+"""
+
+__all__ = ["onnx", "runtime", "lookup"]

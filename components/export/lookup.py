@@ -97,7 +97,9 @@ def load_registered(model: str | Path, registry: str | Path = "registry", *, thr
     posterior = OnnxPosterior.load(folder, intra_op_num_threads=threads)
     card = posterior.card
     if not isinstance(card.get("backbone"), str):
-        raise ValueError(f"{folder / 'card.json'}: the card names no backbone; re-export the model with the export stage")
+        raise ValueError(
+            f"{folder / 'card.json'}: the card names no backbone; re-export the model with the export stage"
+        )
     backbone = get_backbone(card["backbone"], **(card.get("backbone_options") or {}))
     expected = card.get("backbone_fingerprint")
     if expected and not backbone.trainable and backbone.fingerprint() != expected:

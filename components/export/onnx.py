@@ -20,7 +20,8 @@ The exported folder holds three kinds of graph, all float32 with a dynamic batch
 Apart from ``density.onnx``, the bijection to physical units (θ = scaled sigmoid of z, :mod:`components.core.weather`) is
 not in the graphs: the runtime applies it in float64 numpy. ``card.json`` describes everything the runtime needs (θ names, units, box,
 bijection, input spec, the graphs' file names and sha256) merged with the caller's card (backbone, training size,
-metrics, versions). The folder is written atomically: a temporary sibling folder, then a rename.
+metrics, versions). The folder is written atomically: a temporary sibling folder, then a rename
+(:func:`components.core.files.atomic_folder`).
 """
 
 from __future__ import annotations
@@ -29,9 +30,6 @@ import copy
 import io
 import json
 import math
-import os
-import shutil
-import tempfile
 import warnings
 from pathlib import Path
 from typing import Any
@@ -49,7 +47,7 @@ from zuko.transforms import DependentTransform
 from zuko.utils import unpack
 
 from components.core import weather
-from components.core.files import sha256_file
+from components.core.files import atomic_folder, sha256_file
 from components.posterior.bijection import Z_MAX
 from components.posterior.mixture import draw_flow
 from components.posterior.model import NPE, Z_SCALE
@@ -264,7 +262,9 @@ def _export_graph(
                 )
                 proto = onnx.load_from_string(buffer.getvalue())
         except Exception as e:  # the exporters' errors are long traces; say which graph failed
-            raise RuntimeError(f"ONNX export of {path.name} failed ({exporter}): {type(e).__name__}: {str(e)[:2000]}") from e
+            raise RuntimeError(
+                f"ONNX export of {path.name} failed ({exporter}): {type(e).__name__}: {str(e)[:2000]}"
+            ) from e
     onnx.checker.check_model(proto, full_check=True)
     path.write_bytes(proto.SerializeToString())
 
@@ -317,21 +317,17 @@ def export_posterior(model: NPE, folder: str | Path, *, card: dict[str, Any], ex
     if exporter not in EXPORTERS:
         raise ValueError(f"exporter must be one of {', '.join(EXPORTERS)}, got {exporter!r}")
     if model.input_shape is None:
-        raise ValueError("the model has no input_shape: build the NPE with input_shape=(one input's shape) to export it")
+        raise ValueError(
+            "the model has no input_shape: build the NPE with input_shape=(one input's shape) to export it"
+        )
     user_card = _json_safe(card)
     folder = Path(folder)
-    folder.parent.mkdir(parents=True, exist_ok=True)
 
     export_model = copy.deepcopy(model).float().eval()  # the caller's model is left as it is
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
-    try:
+    with atomic_folder(folder) as tmp:
         files = _write_graphs(export_model, tmp, exporter)
         full_card = _card(export_model, user_card, files, tmp, exporter)
         (tmp / "card.json").write_text(json.dumps(full_card, indent=1, allow_nan=False) + "\n")
-        _replace_folder(tmp, folder)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return folder
 
 
@@ -348,12 +344,26 @@ def _write_graphs(model: NPE, tmp: Path, exporter: str) -> dict[str, str]:
     with torch.no_grad():
         ctx_module = _ContextGraph(model)
         c = ctx_module(x)
-        _export_graph(ctx_module, (x,), tmp / files["context"], ["x"], ["context"], exporter,
-                      {"x": ("batch",), "context": ("batch",)})
+        _export_graph(
+            ctx_module,
+            (x,),
+            tmp / files["context"],
+            ["x"],
+            ["context"],
+            exporter,
+            {"x": ("batch",), "context": ("batch",)},
+        )
         z = torch.randn((b, model.dim), generator=gen) * 3.0
         lp_module = _LogProbGraph(model)
-        _export_graph(lp_module, (c, z), tmp / files["log_prob"], ["context", "z"], ["log_qz"], exporter,
-                      {"context": ("batch",), "z": ("batch",), "log_qz": ("batch",)})
+        _export_graph(
+            lp_module,
+            (c, z),
+            tmp / files["log_prob"],
+            ["context", "z"],
+            ["log_qz"],
+            exporter,
+            {"context": ("batch",), "z": ("batch",), "log_qz": ("batch",)},
+        )
         checks: list[tuple[str, dict[str, np.ndarray], list[Tensor]]] = [
             (files["context"], {"x": x.numpy()}, [c]),
             (files["log_prob"], {"context": c.numpy(), "z": z.numpy()}, [lp_module(c, z)]),
@@ -362,8 +372,15 @@ def _write_graphs(model: NPE, tmp: Path, exporter: str) -> dict[str, str]:
         theta = model.box.low + torch.rand((b, model.dim), generator=gen, dtype=torch.float64).numpy() * model.box.width
         theta_t = torch.from_numpy(theta).float()
         d_module = _DensityGraph(model)
-        _export_graph(d_module, (x, theta_t), tmp / files["density"], ["x", "theta"], ["log_prob"], exporter,
-                      {"x": ("batch",), "theta": ("batch",), "log_prob": ("batch",)})
+        _export_graph(
+            d_module,
+            (x, theta_t),
+            tmp / files["density"],
+            ["x", "theta"],
+            ["log_prob"],
+            exporter,
+            {"x": ("batch",), "theta": ("batch",), "log_prob": ("batch",)},
+        )
         checks.append((files["density"], {"x": x.numpy(), "theta": theta_t.numpy()}, [model.log_prob(theta_t, x)]))
         for k, flow in enumerate(model.flows):
             name = f"sample_{k}.onnx"
@@ -371,8 +388,15 @@ def _write_graphs(model: NPE, tmp: Path, exporter: str) -> dict[str, str]:
             _check_standard_normal_base(flow)
             s_module = _SampleGraph(flow)
             axes = ("batch", "draws")
-            _export_graph(s_module, (c, eps), tmp / name, ["context", "eps"], ["z", "log_qz"], exporter,
-                          {"context": ("batch",), "eps": axes, "z": axes, "log_qz": axes})
+            _export_graph(
+                s_module,
+                (c, eps),
+                tmp / name,
+                ["context", "eps"],
+                ["z", "log_qz"],
+                exporter,
+                {"context": ("batch",), "eps": axes, "z": axes, "log_qz": axes},
+            )
             reference = draw_flow(flow(c.unsqueeze(1).expand(b, eps.shape[1], c.shape[1])), eps)  # zuko's inverse
             checks.append((name, {"context": c.numpy(), "eps": eps.numpy()}, list(reference)))
     options = onnxruntime.SessionOptions()
@@ -383,7 +407,7 @@ def _write_graphs(model: NPE, tmp: Path, exporter: str) -> dict[str, str]:
             got = session.run(None, feeds)
         except Exception as e:  # onnxruntime's own exception types
             raise RuntimeError(f"onnxruntime cannot run the exported {name} ({type(e).__name__}: {e})") from e
-        for g, e in zip(got, expected):
+        for g, e in zip(got, expected, strict=False):
             err = float(np.max(np.abs(g - e.numpy()))) if g.size else 0.0
             if not math.isfinite(err) or err > 1e-3:
                 raise RuntimeError(f"exported {name} disagrees with torch by {err:.3g} (onnxruntime vs torch)")
@@ -429,7 +453,10 @@ def _card(model: NPE, user_card: dict[str, Any], files: dict[str, str], tmp: Pat
             "preprocessing": _input_description(model),
         },
         "graphs": {
-            "context": {"inputs": {"x": ["batch", *model.input_shape]}, "outputs": {"context": ["batch", model.features]}},
+            "context": {
+                "inputs": {"x": ["batch", *model.input_shape]},
+                "outputs": {"context": ["batch", model.features]},
+            },
             "log_prob": {
                 "inputs": {"context": ["batch", model.features], "z": ["batch", model.dim]},
                 "outputs": {"log_qz": ["batch", len(model.flows)]},
@@ -448,15 +475,3 @@ def _card(model: NPE, user_card: dict[str, Any], files: dict[str, str], tmp: Pat
         "versions": {"onnx": onnx.__version__, "onnxruntime": onnxruntime.__version__, "torch": torch.__version__},
         "files": {role: {"name": name, "sha256": sha256_file(tmp / name)} for role, name in files.items()},
     }
-
-
-def _replace_folder(tmp: Path, folder: Path) -> None:
-    """Move the finished ``tmp`` to ``folder``; an existing ``folder`` is moved aside first, then removed."""
-    os.chmod(tmp, 0o755)
-    if folder.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".old", dir=folder.parent))
-        os.replace(folder, old / folder.name)
-        os.replace(tmp, folder)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, folder)

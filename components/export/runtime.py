@@ -27,8 +27,7 @@ from typing import Any
 import numpy as np
 import onnxruntime
 
-from components.core import seeding
-from components.core import weather
+from components.core import seeding, weather
 from components.core.files import sha256_file
 
 __all__ = ["OnnxPosterior", "CARD_FORMAT", "CARD_KIND"]
@@ -56,8 +55,14 @@ def _read_card(folder: Path) -> dict[str, Any]:
         raise ValueError(
             f"{path}: card format {card.get('format')!r}, this runtime reads format {CARD_FORMAT}; re-export the model"
         )
-    for key, kind in (("theta", dict), ("bijection", dict), ("ensemble", int), ("features", int), ("input", dict),
-                      ("files", dict)):
+    for key, kind in (
+        ("theta", dict),
+        ("bijection", dict),
+        ("ensemble", int),
+        ("features", int),
+        ("input", dict),
+        ("files", dict),
+    ):
         if not isinstance(card.get(key), kind):
             raise ValueError(f"{path}: the model card lacks {key!r} (a {kind.__name__})")
     return card
@@ -83,8 +88,9 @@ class OnnxPosterior:
                 f"{folder}: bijection {b.get('name')!r} with edge_eps {b.get('edge_eps')!r}; this runtime implements "
                 f"'scaled_logit' with EDGE_EPS = {weather.EDGE_EPS}"
             )
-        self.box = weather.Box(np.array(b["low"]), np.array(b["high"]), tuple(card["theta"]["names"]),
-                               tuple(card["theta"]["units"]))
+        self.box = weather.Box(
+            np.array(b["low"]), np.array(b["high"]), tuple(card["theta"]["names"]), tuple(card["theta"]["units"])
+        )
         self.ensemble = int(card["ensemble"])
         self.features = int(card["features"])
         self.input_shape: tuple[int, ...] = tuple(int(s) for s in card["input"]["shape"][1:])
@@ -110,7 +116,11 @@ class OnnxPosterior:
         folder = Path(folder)
         if not folder.is_dir():
             raise FileNotFoundError(f"{folder}: no such exported posterior folder (run the export stage)")
-        if isinstance(intra_op_num_threads, bool) or not isinstance(intra_op_num_threads, int) or intra_op_num_threads < 1:
+        if (
+            isinstance(intra_op_num_threads, bool)
+            or not isinstance(intra_op_num_threads, int)
+            or intra_op_num_threads < 1
+        ):
             raise ValueError(f"intra_op_num_threads must be an integer >= 1, got {intra_op_num_threads!r}")
         card = _read_card(folder)
         ensemble = card["ensemble"]
@@ -138,7 +148,9 @@ class OnnxPosterior:
             try:
                 sessions[role] = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
             except Exception as e:  # onnxruntime raises its own exception types
-                raise ValueError(f"{path}: onnxruntime cannot load the {role!r} graph ({type(e).__name__}: {e})") from None
+                raise ValueError(
+                    f"{path}: onnxruntime cannot load the {role!r} graph ({type(e).__name__}: {e})"
+                ) from None
         try:
             return cls(folder, card, sessions)
         except (KeyError, TypeError, IndexError) as e:
@@ -167,7 +179,9 @@ class OnnxPosterior:
         x = np.asarray(x)
         expected = f"(batch, {', '.join(map(str, self.input_shape))})"
         if x.ndim != 1 + len(self.input_shape) or tuple(x.shape[1:]) != self.input_shape:
-            raise ValueError(f"x must have shape {expected} ({self.card['input'].get('preprocessing', '')}), got {x.shape}")
+            raise ValueError(
+                f"x must have shape {expected} ({self.card['input'].get('preprocessing', '')}), got {x.shape}"
+            )
         if x.shape[0] == 0:
             raise ValueError(f"x must be a non-empty batch of shape {expected}, got {x.shape}")
         if not np.issubdtype(x.dtype, np.floating):
@@ -207,9 +221,8 @@ class OnnxPosterior:
         members = self._log_qz_members(context, z)
         if self.ensemble == 1:
             return members[:, 0]
-        top = members.max(axis=1, keepdims=True)
-        safe = np.where(np.isfinite(top), top, 0.0)
-        return (safe[:, 0] + np.log(np.exp(members - safe).sum(axis=1))) - math.log(self.ensemble)
+        # numpy's log-sum-exp (−inf where every member is −inf); no scipy here, to keep the runtime's dependencies few
+        return np.logaddexp.reduce(members, axis=1) - math.log(self.ensemble)
 
     def _invert(self, k: int, context: np.ndarray, eps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Member k's inverse pass: ``(B, features), (B, n, d) → z (B, n, d), log qₖ(z | c) (B, n)``."""
@@ -284,14 +297,20 @@ class OnnxPosterior:
         n = e.shape[1]
         if members is None:
             if self.ensemble > 1:
-                raise ValueError(f"members ({b}, {n}) is required: this posterior is an ensemble of {self.ensemble} flows")
+                raise ValueError(
+                    f"members ({b}, {n}) is required: this posterior is an ensemble of {self.ensemble} flows"
+                )
             which = np.zeros((b, n), dtype=np.int64)
         else:
             which = np.asarray(members)
             if which.shape != (b, n) or not np.issubdtype(which.dtype, np.integer):
-                raise ValueError(f"members must be an integer array of shape ({b}, {n}), got {which.dtype} {which.shape}")
+                raise ValueError(
+                    f"members must be an integer array of shape ({b}, {n}), got {which.dtype} {which.shape}"
+                )
             if which.min() < 0 or which.max() >= self.ensemble:
-                raise ValueError(f"members must lie in [0, {self.ensemble}), got values in [{which.min()}, {which.max()}]")
+                raise ValueError(
+                    f"members must lie in [0, {self.ensemble}), got values in [{which.min()}, {which.max()}]"
+                )
         return self._draw(self._context_of(x32), np.ascontiguousarray(e, dtype=np.float32), which)
 
     def _draw(self, context: np.ndarray, eps: np.ndarray, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from components.simulate.dataset import Split
 from components.core.files import atomic_write_bytes
+from components.simulate.dataset import Split
 
 __all__ = [
     "FeatureStore",
@@ -73,7 +73,12 @@ def output_fingerprint(backbone) -> str:
     (its cached output is its model input, which no weight changes) only its name, version and input size."""
     if not backbone.trainable:
         return backbone.fingerprint()
-    head = {"name": backbone.name, "version": backbone.version, "input_size": list(backbone.input_size), "kind": "inputs"}
+    head = {
+        "name": backbone.name,
+        "version": backbone.version,
+        "input_size": list(backbone.input_size),
+        "kind": "inputs",
+    }
     return hashlib.sha256(json.dumps(head, sort_keys=True).encode()).hexdigest()
 
 
@@ -131,16 +136,30 @@ def write_shard_features(store: FeatureStore, split: Split, k: int, values: np.n
     return receipt
 
 
-def write_features_manifest(store: FeatureStore, splits: list[Split], *, fingerprint: str, kind: str, config: dict) -> dict:
+def write_features_manifest(
+    store: FeatureStore, splits: list[Split], *, fingerprint: str, kind: str, config: dict
+) -> dict:
     """Write ``manifest.json`` once every shard of every split is done."""
-    out = {"format": FORMAT_VERSION, "backbone": store.backbone, "fingerprint": fingerprint, "kind": kind,
-           "config": config, "dataset_content_hash": splits[0].content_hash, "splits": {}}
+    out = {
+        "format": FORMAT_VERSION,
+        "backbone": store.backbone,
+        "fingerprint": fingerprint,
+        "kind": kind,
+        "config": config,
+        "dataset_content_hash": splits[0].content_hash,
+        "splits": {},
+    }
     for split in splits:
         n = len(split.shard_files)
         if not all(shard_features_done(store, split, k, fingerprint) for k in range(n)):
             raise FeatureError(f"{store.folder / split.name}: unfinished shards; cannot write the manifest")
         first = json.loads(store.receipt_path(split.name, 0).read_text()) if n else {"shape": [0], "dtype": "float32"}
-        out["splits"][split.name] = {"count": len(split), "shards": n, "shape": first["shape"][1:], "dtype": first["dtype"]}
+        out["splits"][split.name] = {
+            "count": len(split),
+            "shards": n,
+            "shape": first["shape"][1:],
+            "dtype": first["dtype"],
+        }
     atomic_write_bytes(store.folder / "manifest.json", json.dumps(out, indent=1).encode())
     # drop shards of splits or sizes that are no longer in the dataset
     for split in splits:
@@ -163,7 +182,9 @@ def open_features(root: str | Path, backbone: str, split: Split, *, stop: int | 
     try:
         manifest = json.loads(mpath.read_text())
     except OSError:
-        raise FeatureError(f"{mpath}: no cached features for backbone {backbone!r}; run `dvc repro features@{backbone}`") from None
+        raise FeatureError(
+            f"{mpath}: no cached features for backbone {backbone!r}; run `dvc repro features@{backbone}`"
+        ) from None
     except ValueError as e:
         raise FeatureError(f"{mpath}: corrupt features manifest ({e})") from None
     if manifest.get("dataset_content_hash") != split.content_hash:
@@ -179,7 +200,9 @@ def open_features(root: str | Path, backbone: str, split: Split, *, stop: int | 
         if have >= stop:
             break
         if not shard_features_done(store, split, k, manifest["fingerprint"]):
-            raise FeatureError(f"{store.shard_path(split.name, k)}: missing or stale; run `dvc repro features@{backbone}`")
+            raise FeatureError(
+                f"{store.shard_path(split.name, k)}: missing or stale; run `dvc repro features@{backbone}`"
+            )
         try:
             a = np.load(store.shard_path(split.name, k), allow_pickle=False)
         except (OSError, ValueError, EOFError) as e:
@@ -187,7 +210,6 @@ def open_features(root: str | Path, backbone: str, split: Split, *, stop: int | 
         parts.append(a[: stop - have])
         have += len(parts[-1])
     return np.concatenate(parts) if parts else np.zeros((0, *manifest["splits"][split.name]["shape"]), np.float32)
-
 
 
 def posterior_inputs(backbone, images: np.ndarray, batch_size: int = 256) -> np.ndarray:

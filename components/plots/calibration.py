@@ -49,13 +49,17 @@ def model_styles(names: Sequence[str]) -> dict[str, dict[str, object]]:
     others = [n for n in names if n not in grid]
     styles: dict[str, dict[str, object]] = {}
     if grid and len(backbones) <= 10 and len(sizes) <= len(_LINESTYLES) and len(others) <= len(_EXTRA_COLOURS):
-        for name, (backbone, size) in zip(grid, parts):
+        for name, (backbone, size) in zip(grid, parts, strict=False):
             b, s = backbones.index(backbone), sizes.index(size)
             styles[name] = {"color": f"C{b}", "linestyle": _LINESTYLES[s], "marker": _MARKERS[s % len(_MARKERS)]}
         # models beside the grid (e.g. calibrated variants "<backbone>-<size>-<name>"): heavy lines of their own
         for k, name in enumerate(others):
-            styles[name] = {"color": _EXTRA_COLOURS[k], "linestyle": "-", "marker": _MARKERS[k % len(_MARKERS)],
-                            "linewidth": 2.6}
+            styles[name] = {
+                "color": _EXTRA_COLOURS[k],
+                "linestyle": "-",
+                "marker": _MARKERS[k % len(_MARKERS)],
+                "linewidth": 2.6,
+            }
         return styles
     from matplotlib import colormaps
 
@@ -90,7 +94,9 @@ def coverage_plot(
             raise ValueError(f"curves[{name!r}] must be a pair (levels, coverage)")
         lv, cov = (np.asarray(v, dtype=np.float64) for v in pair)
         if lv.ndim != 1 or lv.size < 2 or cov.shape != lv.shape:
-            raise ValueError(f"curves[{name!r}]: levels and coverage must be 1-D of one length >= 2, got {lv.shape} and {cov.shape}")
+            raise ValueError(
+                f"curves[{name!r}]: levels and coverage must be 1-D of one length >= 2, got {lv.shape} and {cov.shape}"
+            )
         for what, v in (("levels", lv), ("coverage", cov)):
             if not np.isfinite(v).all() or (v < 0).any() or (v > 1).any():
                 raise ValueError(f"curves[{name!r}]: {what} must lie in [0, 1]")
@@ -106,8 +112,17 @@ def coverage_plot(
     for name, (lv, cov) in checked.items():
         st = styles[name]
         order = np.argsort(lv)
-        ax.plot(lv[order], cov[order], color=st["color"], linestyle=st["linestyle"], marker=st["marker"],
-                markevery=max(1, lv.size // 8), markersize=4.5, linewidth=st.get("linewidth", 1.6), label=name)
+        ax.plot(
+            lv[order],
+            cov[order],
+            color=st["color"],
+            linestyle=st["linestyle"],
+            marker=st["marker"],
+            markevery=max(1, lv.size // 8),
+            markersize=4.5,
+            linewidth=st.get("linewidth", 1.6),
+            label=name,
+        )
     ax.set_xlim(0, 1)
     ax.set_ylim(0, 1)
     ax.set_aspect("equal")
@@ -137,9 +152,15 @@ def superiority_boxplot(
     styles = model_styles(names)
     fig = new_figure(max(6.0, 0.75 * len(names) + 2.5), 5.4)
     ax = fig.add_subplot()
-    box = ax.boxplot(list(values.values()), tick_labels=names, patch_artist=True, widths=0.6,
-                     medianprops={"color": "black", "linewidth": 1.6}, flierprops={"markersize": 3, "alpha": 0.5})
-    for patch, name in zip(box["boxes"], names):
+    box = ax.boxplot(
+        list(values.values()),
+        tick_labels=names,
+        patch_artist=True,
+        widths=0.6,
+        medianprops={"color": "black", "linewidth": 1.6},
+        flierprops={"markersize": 3, "alpha": 0.5},
+    )
+    for patch, name in zip(box["boxes"], names, strict=False):
         patch.set_facecolor(styles[name]["color"])
         patch.set_alpha(0.55)
     for k, v in enumerate(values.values(), start=1):

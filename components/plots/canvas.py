@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+
+from components.core.files import atomic_path
 
 __all__ = ["new_figure", "save_figure"]
 
@@ -32,9 +33,9 @@ def save_figure(fig: Figure, path: str | os.PathLike[str], dpi: int = 120) -> Pa
 
     The image format follows the suffix of ``path`` (``.png``, ``.pdf``, ``.svg``, …). The figure is first
     written to a temporary file in the destination folder (created if needed) and then moved into place with
-    ``os.replace``, so a reader never sees a half-written file. The figure is closed afterwards: removed from
-    pyplot's registry when pyplot made it; a figure made without pyplot holds no global reference and is freed
-    with the caller's last reference.
+    ``os.replace`` (:func:`components.core.files.atomic_path`), so a reader never sees a half-written file. The
+    figure is closed afterwards: removed from pyplot's registry when pyplot made it; a figure made without pyplot
+    holds no global reference and is freed with the caller's last reference.
     """
     if not isinstance(fig, Figure):
         raise TypeError(f"save_figure expects a matplotlib Figure, got {type(fig).__name__}")
@@ -44,18 +45,14 @@ def save_figure(fig: Figure, path: str | os.PathLike[str], dpi: int = 120) -> Pa
     fmt = target.suffix.lstrip(".").lower()
     supported = FigureCanvasAgg.get_supported_filetypes()
     if fmt not in supported:
-        raise ValueError(f"cannot infer an image format from {str(target)!r}; use one of the suffixes {sorted(supported)}")
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+        raise ValueError(
+            f"cannot infer an image format from {str(target)!r}; use one of the suffixes {sorted(supported)}"
+        )
     try:
-        with os.fdopen(fd, "wb") as handle:
-            fig.savefig(handle, format=fmt, dpi=dpi)
-        os.chmod(tmp, 0o644)  # mkstemp makes it private; a report is meant to be read
-        os.replace(tmp, target)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        with atomic_path(target, fsync=False) as tmp:
+            with open(tmp, "wb") as handle:
+                fig.savefig(handle, format=fmt, dpi=dpi)
+            os.chmod(tmp, 0o644)  # a report is meant to be read, whatever the umask
     finally:
         _close(fig)
     return target

@@ -32,7 +32,9 @@ def as_samples(samples: object, name: str = "samples") -> np.ndarray:
     """θ samples as float64 of shape ``(n, 6)``, n ≥ 1, all finite (physical units, :data:`PREDICTED` order)."""
     a = np.asarray(samples, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != N_THETA or a.shape[0] == 0:
-        raise ValueError(f"{name} must have shape (n, {N_THETA}) with n >= 1 (θ in the order {', '.join(PREDICTED)}), got {a.shape}")
+        raise ValueError(
+            f"{name} must have shape (n, {N_THETA}) with n >= 1 (θ in the order {', '.join(PREDICTED)}), got {a.shape}"
+        )
     if not np.isfinite(a).all():
         raise ValueError(f"{name} contain non-finite values")
     return a
@@ -117,7 +119,9 @@ def as_named_arrays(values: object, name: str, *, allow_nan: bool = False) -> di
             raise ValueError(f"{name}[{key!r}] must be a non-empty 1-D array, got shape {a.shape}")
         bad = np.isinf(a) if allow_nan else ~np.isfinite(a)
         if bad.any():
-            raise ValueError(f"{name}[{key!r}] contains non-finite values" + (" (only NaN is allowed)" if allow_nan else ""))
+            raise ValueError(
+                f"{name}[{key!r}] contains non-finite values" + (" (only NaN is allowed)" if allow_nan else "")
+            )
         if np.isnan(a).all():
             raise ValueError(f"{name}[{key!r}] has no finite value")
         out[key] = a

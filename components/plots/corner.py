@@ -19,11 +19,11 @@ from matplotlib.figure import Figure, SubFigure
 from matplotlib.lines import Line2D
 from matplotlib.ticker import MaxNLocator
 
+from components.core.weather import Box
 from components.plots.canvas import new_figure
 from components.plots.checks import N_THETA, as_box, as_levels, as_log_prob, as_samples, as_truth
 from components.plots.hdr import grid_density, grid_hdr_thresholds, in_hdr
 from components.plots.labels import short_label
-from components.core.weather import Box
 
 __all__ = ["corner_ranges", "corner_plot", "corner_compare"]
 
@@ -139,13 +139,24 @@ def corner_compare(
     if len(labels) != 2:
         raise ValueError(f"labels must name the two distributions, got {labels!r}")
     if overlay:
-        return corner_plot(tb, None, truth, levels, zoom, box, ta, (labels[1], labels[0]), bins, smooth,
-                           title=f"{labels[1]} (filled) and {labels[0]} (contours)")
+        return corner_plot(
+            tb,
+            None,
+            truth,
+            levels,
+            zoom,
+            box,
+            ta,
+            (labels[1], labels[0]),
+            bins,
+            smooth,
+            title=f"{labels[1]} (filled) and {labels[0]} (contours)",
+        )
     lv = as_levels(levels)
     t = as_truth(truth)
     ranges = corner_ranges(ta, None, t, zoom, box, tb)
     fig = new_figure(20.0, 10.6, layout=None)
-    for sub, theta, name in zip(fig.subfigures(1, 2, wspace=0.02), (ta, tb), labels):
+    for sub, theta, name in zip(fig.subfigures(1, 2, wspace=0.02), (ta, tb), labels, strict=False):
         _draw_corner(sub, theta, ranges, lv, t, None, (name, ""), bins, smooth)
         sub.suptitle(name, y=0.985, fontsize=15)
     return fig
@@ -163,7 +174,8 @@ def _draw_corner(
     smooth: float,
 ) -> None:
     axes = container.subplots(
-        N_THETA, N_THETA,
+        N_THETA,
+        N_THETA,
         gridspec_kw={"left": 0.085, "right": 0.985, "bottom": 0.075, "top": 0.955, "wspace": 0.07, "hspace": 0.07},
     )
     for i in range(N_THETA):
@@ -177,13 +189,25 @@ def _draw_corner(
                 if truth is not None:
                     ax.axvline(truth[i], color=TRUTH_COLOUR, linewidth=1.5)
             else:
-                _pair(ax, theta[:, j], theta[:, i], ranges[j], ranges[i], levels, bins, smooth, MAIN["line"], image=True)
+                _pair(
+                    ax, theta[:, j], theta[:, i], ranges[j], ranges[i], levels, bins, smooth, MAIN["line"], image=True
+                )
                 if ref is not None:
-                    _pair(ax, ref[:, j], ref[:, i], ranges[j], ranges[i], levels, bins, smooth, OTHER["line"], image=False)
+                    _pair(
+                        ax, ref[:, j], ref[:, i], ranges[j], ranges[i], levels, bins, smooth, OTHER["line"], image=False
+                    )
                 if truth is not None:
                     ax.axvline(truth[j], color=TRUTH_COLOUR, linewidth=0.9)
                     ax.axhline(truth[i], color=TRUTH_COLOUR, linewidth=0.9)
-                    ax.plot(truth[j], truth[i], marker="*", markersize=11, color=TRUTH_COLOUR, markeredgecolor="white", markeredgewidth=0.6)
+                    ax.plot(
+                        truth[j],
+                        truth[i],
+                        marker="*",
+                        markersize=11,
+                        color=TRUTH_COLOUR,
+                        markeredgecolor="white",
+                        markeredgewidth=0.6,
+                    )
                 ax.set_ylim(*ranges[i])
             ax.set_xlim(*ranges[j])
             ax.xaxis.set_major_locator(MaxNLocator(4, prune="both"))
@@ -201,11 +225,15 @@ def _draw_corner(
             if i == j:
                 ax.tick_params(axis="y", left=False)
     level_colour = MAIN["line"] if ref is None else "dimgray"  # with a reference, the styles apply to both colours
-    handles = [Line2D([], [], color=level_colour, linestyle=LINESTYLES[k % len(LINESTYLES)], label=f"{100 * lev:.2f} % HDR")
-               for k, lev in enumerate(levels)]
+    handles = [
+        Line2D([], [], color=level_colour, linestyle=LINESTYLES[k % len(LINESTYLES)], label=f"{100 * lev:.2f} % HDR")
+        for k, lev in enumerate(levels)
+    ]
     if ref is not None:
-        handles = [Line2D([], [], color=MAIN["line"], linewidth=3, label=labels[0]),
-                   Line2D([], [], color=OTHER["line"], linewidth=3, label=labels[1])] + handles
+        handles = [
+            Line2D([], [], color=MAIN["line"], linewidth=3, label=labels[0]),
+            Line2D([], [], color=OTHER["line"], linewidth=3, label=labels[1]),
+        ] + handles
     if truth is not None:
         handles.append(Line2D([], [], color=TRUTH_COLOUR, marker="*", markersize=11, label="ground truth"))
     axes[0, N_THETA - 1].legend(handles=handles, loc="upper right", fontsize=11, frameon=False, title="2-D marginals")

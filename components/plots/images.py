@@ -78,8 +78,16 @@ def ppc_sheet(
                 caption += f"\n{distance_name} = {dist[j]:.3g}"
             ax.set_title(caption, fontsize=9)
     if prior is not None:
-        axes[1, 0].text(0.5, 0.5, "renders under\nprior draws\n(contrast)", ha="center", va="center", fontsize=9,
-                        transform=axes[1, 0].transAxes, color="dimgray")
+        axes[1, 0].text(
+            0.5,
+            0.5,
+            "renders under\nprior draws\n(contrast)",
+            ha="center",
+            va="center",
+            fontsize=9,
+            transform=axes[1, 0].transAxes,
+            color="dimgray",
+        )
     fig.suptitle(title)
     return fig
 

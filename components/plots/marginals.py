@@ -6,11 +6,11 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
+from components.core.weather import PREDICTED, Box
 from components.plots.canvas import new_figure
 from components.plots.checks import N_THETA, as_box, as_log_prob, as_samples, as_truth
 from components.plots.hdr import in_hdr
 from components.plots.labels import parameter_label, unit_symbol
-from components.core.weather import PREDICTED, Box
 
 __all__ = ["marginal_hdr_histograms", "marginal_histograms"]
 
@@ -73,7 +73,15 @@ def marginal_histograms(
         e = edges[k]
         width = np.diff(e)
         ax.bar(e[:-1], inside[k] / width, width=width, align="edge", color=HDR_COLOUR, linewidth=0)
-        ax.bar(e[:-1], outside[k] / width, width=width, bottom=inside[k] / width, align="edge", color=OUTSIDE_COLOUR, linewidth=0)
+        ax.bar(
+            e[:-1],
+            outside[k] / width,
+            width=width,
+            bottom=inside[k] / width,
+            align="edge",
+            color=OUTSIDE_COLOUR,
+            linewidth=0,
+        )
         if t is not None:
             ax.axvline(t[k], color=TRUTH_COLOUR, linewidth=2)
         ax.set_xlim(b.low[k], b.high[k])
@@ -87,5 +95,7 @@ def marginal_histograms(
     if t is not None:
         handles.append(Patch(color=TRUTH_COLOUR, label="ground truth"))
     fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), frameon=False)
-    fig.suptitle(f"Marginals of the predicted weather distribution, highest-density region at {100 * level:.2f} % highlighted")
+    fig.suptitle(
+        f"Marginals of the predicted weather distribution, highest-density region at {100 * level:.2f} % highlighted"
+    )
     return fig

@@ -94,8 +94,14 @@ def roc_curves(
     cmap = colormaps["viridis"]
     for k, (level, scores) in enumerate(pos.items()):
         fpr, tpr, auc = roc_curve(negatives, scores)
-        ax.plot(fpr, tpr, drawstyle="default", color=cmap(0.9 * k / cmap_n), linewidth=1.6,
-                label=f"η = {_level_label(level)}  (AUC {auc:.3f})")
+        ax.plot(
+            fpr,
+            tpr,
+            drawstyle="default",
+            color=cmap(0.9 * k / cmap_n),
+            linewidth=1.6,
+            label=f"η = {_level_label(level)}  (AUC {auc:.3f})",
+        )
     ax.set_xlim(-0.01, 1.01)
     ax.set_ylim(-0.01, 1.01)
     ax.set_aspect("equal")

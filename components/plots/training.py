@@ -24,8 +24,11 @@ def best_epoch(history: Mapping[str, Sequence[float]]) -> tuple[str, int]:
     return str(key), int(np.nanargmin(curves[key])) + 1
 
 
-def loss_curves(history: Mapping[str, Sequence[float]], ylabel: str = "loss (negative log-likelihood)",
-                title: str = "Training curves") -> Figure:
+def loss_curves(
+    history: Mapping[str, Sequence[float]],
+    ylabel: str = "loss (negative log-likelihood)",
+    title: str = "Training curves",
+) -> Figure:
     """Loss per epoch for each curve of ``history`` (e.g. ``{"train": [...], "val": [...]}``), best epoch marked.
 
     Curves may have different lengths (epoch k is entry k − 1); NaN marks an epoch without a value.
@@ -39,8 +42,15 @@ def loss_curves(history: Mapping[str, Sequence[float]], ylabel: str = "loss (neg
         ax.plot(epochs, values, marker="o" if values.size <= 30 else None, markersize=3, linewidth=1.6, label=str(name))
     best_value = float(curves[next(k for k in curves if str(k) == key)][best - 1])
     ax.axvline(best, color="grey", linestyle=":", linewidth=1)
-    ax.plot([best], [best_value], marker="*", markersize=14, color="#d62728", linestyle="none",
-            label=f"best {key}: epoch {best}, {best_value:.4g}")
+    ax.plot(
+        [best],
+        [best_value],
+        marker="*",
+        markersize=14,
+        color="#d62728",
+        linestyle="none",
+        label=f"best {key}: epoch {best}, {best_value:.4g}",
+    )
     ax.set_xlabel("epoch")
     ax.set_ylabel(ylabel)
     ax.set_title(title)

@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -105,5 +104,7 @@ class ScaledLogit(nn.Module):
         return torch.minimum(torch.maximum(theta, low), high)
 
     def extra_repr(self) -> str:
-        pairs: Sequence[str] = [f"[{lo:g}, {hi:g}]" for lo, hi in zip(self.low.tolist(), self.high.tolist())]
+        pairs: Sequence[str] = [
+            f"[{lo:g}, {hi:g}]" for lo, hi in zip(self.low.tolist(), self.high.tolist(), strict=False)
+        ]
         return "box=" + " × ".join(pairs)

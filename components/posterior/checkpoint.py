@@ -1,35 +1,25 @@
 """Atomic checkpoint files: a run killed at any moment leaves either the previous or the new checkpoint, whole.
 
 The state is written to a temporary file in the same directory, flushed to disk, then renamed over the target
-with ``os.replace`` (atomic on POSIX and Windows within one file system).
+with ``os.replace`` (atomic on POSIX and Windows within one file system): :func:`components.core.files.atomic_path`.
 """
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
+
+from components.core.files import atomic_path
 
 __all__ = ["save_checkpoint", "load_checkpoint"]
 
 
 def save_checkpoint(state: dict[str, Any], path: str | Path) -> None:
     """Write ``state`` (tensors, numbers, strings, lists, dicts) to ``path`` atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(state, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        torch.save(state, f)
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any] | None:
@@ -40,7 +30,9 @@ def load_checkpoint(path: str | Path) -> dict[str, Any] | None:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch raises several types for a truncated or foreign file
-        raise ValueError(f"checkpoint {path} cannot be read ({type(err).__name__}: {err}); delete it to start over") from None
+        raise ValueError(
+            f"checkpoint {path} cannot be read ({type(err).__name__}: {err}); delete it to start over"
+        ) from None
     if not isinstance(state, dict):
         raise ValueError(f"checkpoint {path} does not hold a training state (got {type(state).__name__})")
     return state

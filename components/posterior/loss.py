@@ -49,7 +49,9 @@ class LossParts:
     penalty: float
 
 
-def balance_penalty(log_q_joint: Tensor, log_q_marginal: Tensor, log_prior_joint: Tensor, log_prior_marginal: Tensor) -> Tensor:
+def balance_penalty(
+    log_q_joint: Tensor, log_q_marginal: Tensor, log_prior_joint: Tensor, log_prior_marginal: Tensor
+) -> Tensor:
     """Unbiased batch estimate of ``(E_joint[d] + E_marginal[d] − 1)²``, d = σ(log q − log p), over the last axis.
 
     Arguments:

@@ -26,9 +26,8 @@ import zuko
 from torch import Tensor, nn
 from torch.distributions import AffineTransform, Distribution
 
-from components.core import seeding
-from components.core import weather
-from components.posterior.bijection import IntervalBox, ScaledLogit, Z_MAX, as_interval_box
+from components.core import seeding, weather
+from components.posterior.bijection import Z_MAX, ScaledLogit, as_interval_box
 from components.posterior.mixture import EqualMixture, draw_flow, standard_normal
 
 __all__ = ["FlowConfig", "NPE", "Z_SCALE"]
@@ -67,7 +66,9 @@ class FlowConfig:
             raise ValueError(f"FlowConfig.bins must be >= 2, got {self.bins}")
         if not self.hidden_features or any(h < 1 for h in self.hidden_features):
             raise ValueError(f"FlowConfig.hidden_features must be positive widths, got {self.hidden_features}")
-        if self.passes is not None and (isinstance(self.passes, bool) or not isinstance(self.passes, int) or self.passes < 1):
+        if self.passes is not None and (
+            isinstance(self.passes, bool) or not isinstance(self.passes, int) or self.passes < 1
+        ):
             raise ValueError(f"FlowConfig.passes must be None (autoregressive) or an integer >= 1, got {self.passes!r}")
 
 
@@ -143,11 +144,15 @@ class NPE(nn.Module):
         self.embedding = embedding if embedding is not None else nn.Identity()
         if embedding is None:
             if input_shape is not None and tuple(input_shape) != (features,):
-                raise ValueError(f"without an embedding the input shape is (features,) = ({features},), got {input_shape}")
+                raise ValueError(
+                    f"without an embedding the input shape is (features,) = ({features},), got {input_shape}"
+                )
             input_shape = (features,)
         elif config.standardize and input_shape is None:
             raise ValueError("with an embedding and FlowConfig.standardize=True, give input_shape (one input's shape)")
-        self.input_shape: tuple[int, ...] | None = tuple(int(s) for s in input_shape) if input_shape is not None else None
+        self.input_shape: tuple[int, ...] | None = (
+            tuple(int(s) for s in input_shape) if input_shape is not None else None
+        )
         if config.standardize:
             assert self.input_shape is not None
             self.register_buffer("feature_mean", torch.zeros(self.input_shape))
@@ -206,7 +211,9 @@ class NPE(nn.Module):
             x = (x - self.feature_mean) / self.feature_std
         c = self.embedding(x)
         if c.dim() != 2 or c.shape != (x.shape[0], self.features):
-            raise ValueError(f"the embedding must return (batch, features) = ({x.shape[0]}, {self.features}), got {tuple(c.shape)}")
+            raise ValueError(
+                f"the embedding must return (batch, features) = ({x.shape[0]}, {self.features}), got {tuple(c.shape)}"
+            )
         return c
 
     def _theta(self, theta: Tensor, batch: int) -> Tensor:
@@ -269,7 +276,9 @@ class NPE(nn.Module):
 
     # --- sampling --------------------------------------------------------------------------------------
 
-    def _draw_z(self, context: Tensor, n: int, generator: torch.Generator, with_log_prob: bool) -> tuple[Tensor, Tensor | None]:
+    def _draw_z(
+        self, context: Tensor, n: int, generator: torch.Generator, with_log_prob: bool
+    ) -> tuple[Tensor, Tensor | None]:
         """z ``(n, B, d)`` from the (mixture) flow, and its z-space log-density ``(n, B)`` when asked."""
         b = context.shape[0]
         eps = standard_normal((n, b, self.dim), generator, like=context)

@@ -26,7 +26,9 @@ __all__ = ["save_npe", "load_npe", "MODEL_FORMAT"]
 MODEL_FORMAT = 1
 
 
-def save_npe(path: str | Path, model: NPE, *, backbone: str, backbone_options: dict[str, Any], extra: dict | None = None) -> None:
+def save_npe(
+    path: str | Path, model: NPE, *, backbone: str, backbone_options: dict[str, Any], extra: dict | None = None
+) -> None:
     """Write ``model`` and its header atomically to ``path``."""
     embedded = not isinstance(model.embedding, torch.nn.Identity)
     header = {
@@ -37,8 +39,12 @@ def save_npe(path: str | Path, model: NPE, *, backbone: str, backbone_options: d
         "features": model.features,
         "input_shape": list(model.input_shape) if model.input_shape is not None else None,
         "flow": asdict(model.config),
-        "box": {"low": model.box.low.tolist(), "high": model.box.high.tolist(), "names": list(model.box.names),
-                "units": list(model.box.units)},
+        "box": {
+            "low": model.box.low.tolist(),
+            "high": model.box.high.tolist(),
+            "names": list(model.box.names),
+            "units": list(model.box.units),
+        },
         "extra": extra or {},
     }
     buf = io.BytesIO()
@@ -58,8 +64,12 @@ def load_npe(path: str | Path) -> tuple[NPE, dict[str, Any]]:
     header = blob.get("header", {}) if isinstance(blob, dict) else {}
     if header.get("format") != MODEL_FORMAT:
         raise ValueError(f"{path}: model format {header.get('format')!r}, this pidc reads {MODEL_FORMAT}")
-    box = weather.Box(np.array(header["box"]["low"]), np.array(header["box"]["high"]), tuple(header["box"]["names"]),
-                      tuple(header["box"]["units"]))
+    box = weather.Box(
+        np.array(header["box"]["low"]),
+        np.array(header["box"]["high"]),
+        tuple(header["box"]["names"]),
+        tuple(header["box"]["units"]),
+    )
     flow = dict(header["flow"])
     flow["hidden_features"] = tuple(flow["hidden_features"])
     embedding = None

@@ -83,16 +83,26 @@ class TrainingConfig:
                 raise ValueError(f"TrainingConfig.{name} must be an integer >= 1, got {v!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"TrainingConfig.seed must be an integer >= 0, got {self.seed!r}")
-        for name, low_ok in (("lr", False), ("weight_decay", True), ("min_lr", True), ("min_delta", True), ("balance", True)):
+        for name, low_ok in (
+            ("lr", False),
+            ("weight_decay", True),
+            ("min_lr", True),
+            ("min_delta", True),
+            ("balance", True),
+        ):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0 or (v == 0 and not low_ok):
-                raise ValueError(f"TrainingConfig.{name} must be a finite number {'>=' if low_ok else '>'} 0, got {v!r}")
+                raise ValueError(
+                    f"TrainingConfig.{name} must be a finite number {'>=' if low_ok else '>'} 0, got {v!r}"
+                )
         if self.min_lr > self.lr:
             raise ValueError(f"TrainingConfig.min_lr ({self.min_lr:g}) must not exceed lr ({self.lr:g})")
         if not 0 < self.plateau_factor < 1:
             raise ValueError(f"TrainingConfig.plateau_factor must be in (0, 1), got {self.plateau_factor!r}")
         if self.schedule not in ("cosine", "plateau", "constant"):
-            raise ValueError(f"TrainingConfig.schedule must be 'cosine', 'plateau' or 'constant', got {self.schedule!r}")
+            raise ValueError(
+                f"TrainingConfig.schedule must be 'cosine', 'plateau' or 'constant', got {self.schedule!r}"
+            )
         if self.clip_norm is not None and not (isinstance(self.clip_norm, (int, float)) and self.clip_norm > 0):
             raise ValueError(f"TrainingConfig.clip_norm must be > 0 or None, got {self.clip_norm!r}")
 
@@ -172,7 +182,12 @@ class History:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> History:
-        return cls([EpochRecord(**r) for r in d["records"]], int(d["best_epoch"]), float(d["best_val_loss"]), bool(d["stopped_early"]))
+        return cls(
+            [EpochRecord(**r) for r in d["records"]],
+            int(d["best_epoch"]),
+            float(d["best_val_loss"]),
+            bool(d["stopped_early"]),
+        )
 
 
 # --- input validation -----------------------------------------------------------------------------------
@@ -198,13 +213,17 @@ def check_split(name: str, data: tuple[object, object], model: NPE) -> tuple[Ten
     x = _as_tensor(data[0], f"{name} x")
     theta = _as_tensor(data[1], f"{name} θ")
     if x.dim() == 0 or theta.dim() == 0:
-        raise ValueError(f"{name} split: x and θ need a leading sample axis, got shapes {tuple(x.shape)} and {tuple(theta.shape)}")
+        raise ValueError(
+            f"{name} split: x and θ need a leading sample axis, got shapes {tuple(x.shape)} and {tuple(theta.shape)}"
+        )
     if x.shape[0] == 0 or theta.shape[0] == 0:
         raise ValueError(f"{name} split is empty (x has {x.shape[0]} rows, θ has {theta.shape[0]})")
     if x.shape[0] != theta.shape[0]:
         raise ValueError(f"{name} split: x has {x.shape[0]} rows but θ has {theta.shape[0]}")
     if model.input_shape is not None and tuple(x.shape[1:]) != model.input_shape:
-        raise ValueError(f"{name} x must have shape (n, {', '.join(map(str, model.input_shape))}), got {tuple(x.shape)}")
+        raise ValueError(
+            f"{name} x must have shape (n, {', '.join(map(str, model.input_shape))}), got {tuple(x.shape)}"
+        )
     if not x.is_floating_point():
         x = x.to(torch.float32)
     finite = torch.isfinite(x.reshape(x.shape[0], -1)).all(dim=1)
@@ -212,7 +231,9 @@ def check_split(name: str, data: tuple[object, object], model: NPE) -> tuple[Ten
         row = int((~finite).nonzero()[0])
         raise ValueError(f"{name} x contains NaN or infinite values ({int((~finite).sum())} rows, first at row {row})")
     if theta.dim() != 2 or theta.shape[1] != model.dim:
-        raise ValueError(f"{name} θ must have shape (n, {model.dim}) ({', '.join(model.box.names)}), got {tuple(theta.shape)}")
+        raise ValueError(
+            f"{name} θ must have shape (n, {model.dim}) ({', '.join(model.box.names)}), got {tuple(theta.shape)}"
+        )
     theta = theta.to(torch.float64)
     model.box.check(theta.numpy(), what=f"{name} θ")
     return x.to(torch.float32), theta
@@ -309,14 +330,20 @@ def train(
     state = load_checkpoint(checkpoint) if checkpoint is not None else None
     if state is not None:
         if state.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError(f"checkpoint {checkpoint} has format {state.get('format')!r}, expected {CHECKPOINT_FORMAT}")
+            raise ValueError(
+                f"checkpoint {checkpoint} has format {state.get('format')!r}, expected {CHECKPOINT_FORMAT}"
+            )
         saved = state["config"]
         diff = [f.name for f in fields(config) if saved.get(f.name) != getattr(config, f.name)]
         if diff:
-            raise ValueError(f"checkpoint {checkpoint} was written with other training settings ({', '.join(diff)}); "
-                             "delete it or use another path")
+            raise ValueError(
+                f"checkpoint {checkpoint} was written with other training settings ({', '.join(diff)}); "
+                "delete it or use another path"
+            )
         if state["data"] != fingerprint:
-            raise ValueError(f"checkpoint {checkpoint} was written for other training/validation data; delete it or use another path")
+            raise ValueError(
+                f"checkpoint {checkpoint} was written for other training/validation data; delete it or use another path"
+            )
         try:
             model.load_state_dict(state["model"])
         except RuntimeError as err:
@@ -396,8 +423,17 @@ def train(
             else:
                 bad_epochs += 1
             record = EpochRecord(
-                epoch, train_loss, val_loss, train_nll, val_nll, train_pen, val_pen, lr,
-                time.perf_counter() - t0, history.best_epoch, improved,
+                epoch,
+                train_loss,
+                val_loss,
+                train_nll,
+                val_nll,
+                train_pen,
+                val_pen,
+                lr,
+                time.perf_counter() - t0,
+                history.best_epoch,
+                improved,
             )
             history.records.append(record)
             stop = bad_epochs >= config.patience and epoch + 1 < config.epochs

@@ -1,22 +1,15 @@
-"""Simulators of front-camera images under CARLA weathers.
+"""simulate — the first stage (``generate``): front-camera images under CARLA weathers, and the dataset of them.
 
-``Simulator`` is the protocol; ``ProceduralSimulator`` the embedded default renderer;
-``CarlaSimulator`` (imported lazily, it needs the ``carla`` client) the CARLA backend.
+Public API, by module (imported from the module itself, so that a stage that only reads the dataset does not
+import the renderer):
+
+- :mod:`~components.simulate.base`: ``Simulator`` (the protocol: ``render(weather, scene_seed) → (H, W, 3) uint8``)
+  and ``make_simulator(config)``.
+- :mod:`~components.simulate.procedural`: ``ProceduralSimulator(height, width)``, the embedded physical renderer.
+- :mod:`~components.simulate.carla`: ``CarlaSimulator``, the CARLA client backend (needs the ``carla`` extra).
+- :mod:`~components.simulate.dataset`: deterministic plans, shards, receipts and manifests of the train/val/test
+  splits (``plan_split``, ``render_shard``, ``open_split``, ``Split``).
+- :mod:`~components.simulate.contact_sheet`: the contact sheet of the ``generate`` stage.
 """
 
-from __future__ import annotations
-
-from typing import Any
-
-from .base import Simulator
-from .procedural import ProceduralSimulator
-
-__all__ = ["Simulator", "ProceduralSimulator", "CarlaSimulator"]
-
-
-def __getattr__(name: str) -> Any:
-    if name == "CarlaSimulator":
-        from .carla import CarlaSimulator
-
-        return CarlaSimulator
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__all__ = ["base", "procedural", "carla", "dataset", "contact_sheet"]

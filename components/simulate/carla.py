@@ -497,7 +497,7 @@ class CarlaSimulator:
         self.connect()
         try:
             if self._scene is None or self._scene.plan is None or self._scene.plan.scene_seed != seed:
-                self._raise_cleanup_errors(self._teardown_scene(), "before building scene %d" % seed)
+                self._raise_cleanup_errors(self._teardown_scene(), f"before building scene {seed}")
                 self._build_scene(seed)
             return self._capture(parameters)
         except BaseException as exc:
@@ -639,7 +639,9 @@ class CarlaSimulator:
         plan = scene.plan
         assert plan is not None
         batch = []
-        for name, index, colour in zip(plan.vehicle_blueprints, plan.vehicle_spawn_indices, plan.vehicle_colours):
+        for name, index, colour in zip(
+            plan.vehicle_blueprints, plan.vehicle_spawn_indices, plan.vehicle_colours, strict=False
+        ):
             bp = library.find(name)
             bp.set_attribute("role_name", "autopilot")
             _set_colour(bp, colour)
@@ -672,14 +674,14 @@ class CarlaSimulator:
         if not batch:
             return
         results = self._client.apply_batch_sync(batch, True)
-        spawned = [(r.actor_id, s) for r, s in zip(results, speeds) if not r.error]
+        spawned = [(r.actor_id, s) for r, s in zip(results, speeds, strict=False) if not r.error]
         scene.walker_ids = [walker_id for walker_id, _ in spawned]
         controller_bp = library.find("controller.ai.walker")
         results = self._client.apply_batch_sync(
             [command.SpawnActor(controller_bp, carla.Transform(), walker_id) for walker_id, _ in spawned], True
         )
         controller_ids, controller_speeds = [], []
-        for r, (_, speed) in zip(results, spawned):
+        for r, (_, speed) in zip(results, spawned, strict=False):
             if not r.error:
                 controller_ids.append(r.actor_id)
                 controller_speeds.append(speed)
@@ -688,7 +690,7 @@ class CarlaSimulator:
         world.tick(self.timeout_s)  # the client needs the walkers' transforms before the controllers start
         world.set_pedestrians_cross_factor(0.0)
         by_id = {c.id: c for c in scene.controllers}
-        for controller_id, speed in zip(controller_ids, controller_speeds):
+        for controller_id, speed in zip(controller_ids, controller_speeds, strict=False):
             controller = by_id[controller_id]
             controller.start()
             destination = world.get_random_location_from_navigation()

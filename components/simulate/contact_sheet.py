@@ -9,12 +9,12 @@ cloud cover and low sun look like what they are.
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 
 import cv2
 import numpy as np
 
+from components.core.files import atomic_path
 from components.core.weather import PARAMETERS, PREDICTED
 
 from .base import Simulator
@@ -40,13 +40,22 @@ _SWEEP_OVERRIDES: dict[str, dict[str, float]] = {
 
 def _label(text: str, height: int, width: int, scale: float) -> np.ndarray:
     panel = np.full((height, width, 3), 24, np.uint8)
-    cv2.putText(panel, text, (4, height // 2 + int(5 * scale)), cv2.FONT_HERSHEY_SIMPLEX, 0.45 * scale,
-                (235, 235, 235), 1, cv2.LINE_AA)
+    cv2.putText(
+        panel,
+        text,
+        (4, height // 2 + int(5 * scale)),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.45 * scale,
+        (235, 235, 235),
+        1,
+        cv2.LINE_AA,
+    )
     return panel
 
 
-def contact_sheet(simulator: Simulator, scene_seeds: Sequence[int], steps: int,
-                  base_weather: Mapping[str, float] | None = None) -> np.ndarray:
+def contact_sheet(
+    simulator: Simulator, scene_seeds: Sequence[int], steps: int, base_weather: Mapping[str, float] | None = None
+) -> np.ndarray:
     """A uint8 RGB sheet: for each scene seed, one row per predicted parameter, ``steps`` tiles from
     the parameter's low to its high value (other parameters at ``base_weather``).
 
@@ -69,30 +78,24 @@ def contact_sheet(simulator: Simulator, scene_seeds: Sequence[int], steps: int,
             for v in np.linspace(p.low, p.high, steps):
                 w = {**base, **_SWEEP_OVERRIDES.get(name, {}), name: float(v)}
                 img = np.ascontiguousarray(simulator.render(w, seed))
-                cv2.putText(img, f"{v:.0f}", (3, H - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.35 * scale, (0, 0, 0), 2, cv2.LINE_AA)
-                cv2.putText(img, f"{v:.0f}", (3, H - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.35 * scale, (255, 255, 255), 1, cv2.LINE_AA)
+                cv2.putText(
+                    img, f"{v:.0f}", (3, H - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.35 * scale, (0, 0, 0), 2, cv2.LINE_AA
+                )
+                cv2.putText(
+                    img, f"{v:.0f}", (3, H - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.35 * scale, (255, 255, 255), 1, cv2.LINE_AA
+                )
                 tiles.append(img)
             rows.append(np.concatenate(tiles, axis=1))
     return np.concatenate(rows, axis=0)
 
 
 def save_png(path: str | os.PathLike[str], image: np.ndarray) -> None:
-    """Write an RGB uint8 image (H, W, 3) as PNG atomically (temporary file + ``os.replace``)."""
+    """Write an RGB uint8 image (H, W, 3) as PNG atomically (:func:`components.core.files.atomic_path`)."""
     img = np.asarray(image)
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         raise ValueError(f"save_png needs an (H, W, 3) uint8 RGB image, got {img.dtype} {img.shape}")
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[:, :, ::-1]))
     if not ok:
-        raise ValueError(f"could not encode a PNG for {path}")
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(buf.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        raise ValueError(f"could not encode a PNG for {os.fspath(path)}")
+    with atomic_path(path, fsync=False) as tmp:
+        tmp.write_bytes(buf.tobytes())

@@ -29,8 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from components.core import seeding
-from components.core import weather
+from components.core import seeding, weather
 from components.core.files import atomic_write_bytes, sha256_file
 
 __all__ = [
@@ -226,8 +225,8 @@ def render_shard(rows: ShardRows, simulator, root: str | Path) -> dict:
     spec = rows.spec
     h, w = simulator.height, simulator.width
     images = np.empty((spec.stop - spec.start, h, w, 3), dtype=np.uint8)
-    for j, (row, scene_seed) in enumerate(zip(rows.weather, rows.scene_seed)):
-        wdict = {n: float(v) for n, v in zip(weather.ALL_NAMES, row)}
+    for j, (row, scene_seed) in enumerate(zip(rows.weather, rows.scene_seed, strict=False)):
+        wdict = {n: float(v) for n, v in zip(weather.ALL_NAMES, row, strict=False)}
         img = simulator.render(wdict, int(scene_seed))
         if img.shape != (h, w, 3) or img.dtype != np.uint8:
             raise DatasetError(f"simulator returned {img.dtype} {img.shape}, expected uint8 {(h, w, 3)}")
@@ -296,8 +295,8 @@ def write_manifest(
             "count": len(plan),
             "scenes": int(plan.scene_id[-1]) + 1 if len(plan) else 0,
             "plan": plan.fingerprint,
-            "theta_min": dict(zip(weather.PREDICTED, theta.min(0).tolist())),
-            "theta_max": dict(zip(weather.PREDICTED, theta.max(0).tolist())),
+            "theta_min": dict(zip(weather.PREDICTED, theta.min(0).tolist(), strict=False)),
+            "theta_max": dict(zip(weather.PREDICTED, theta.max(0).tolist(), strict=False)),
             "shards": shards,
         }
     manifest = {
@@ -308,7 +307,9 @@ def write_manifest(
         "images_per_scene": images_per_scene,
         "weather_columns": list(weather.ALL_NAMES),
         "theta_columns": list(weather.PREDICTED),
-        "prior_box": {n: [float(lo), float(hi)] for n, lo, hi in zip(weather.PREDICTED, box.low, box.high)},
+        "prior_box": {
+            n: [float(lo), float(hi)] for n, lo, hi in zip(weather.PREDICTED, box.low, box.high, strict=False)
+        },
         "splits": splits,
         "content_hash": content.hexdigest(),
     }
@@ -340,11 +341,15 @@ class Split:
         info = manifest["splits"][name]
         self.shard_files = [root / s["file"] for s in info["shards"]]
         self._shard_info = info["shards"]
-        for path, s in zip(self.shard_files, self._shard_info):
+        for path, s in zip(self.shard_files, self._shard_info, strict=False):
             if not path.is_file():
-                raise DatasetError(f"{path}: shard listed in {root / 'manifest.json'} is missing; re-run the generate stage")
+                raise DatasetError(
+                    f"{path}: shard listed in {root / 'manifest.json'} is missing; re-run the generate stage"
+                )
             if path.stat().st_size != s["bytes"] or (verify and sha256_file(path) != s["sha256"]):
-                raise DatasetError(f"{path}: shard does not match the manifest (truncated or changed); re-run the generate stage")
+                raise DatasetError(
+                    f"{path}: shard does not match the manifest (truncated or changed); re-run the generate stage"
+                )
         meta = [self._load_meta(p) for p in self.shard_files]
         self.weather = np.concatenate([m["weather"] for m in meta]) if meta else np.zeros((0, 13))
         self.scene_id = np.concatenate([m["scene_id"] for m in meta]) if meta else np.zeros(0, np.int64)
@@ -360,7 +365,9 @@ class Split:
             with np.load(path, allow_pickle=False) as z:
                 return {k: z[k] for k in ("weather", "scene_id", "scene_seed")}
         except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as e:
-            raise DatasetError(f"{path}: unreadable shard ({type(e).__name__}: {e}); re-run the generate stage") from None
+            raise DatasetError(
+                f"{path}: unreadable shard ({type(e).__name__}: {e}); re-run the generate stage"
+            ) from None
 
     def __len__(self) -> int:
         return len(self.weather)

@@ -231,7 +231,11 @@ class CuesBackbone(Backbone):
         # road region: lower 35 %, central 60 % of columns
         r0, c0, c1 = round(0.65 * h), round(0.2 * w), round(0.8 * w)
         road_v = v[:, 0, r0:, c0:c1].flatten(1)
-        feats += [road_v.mean(1, keepdim=True), road_v.std(1, keepdim=True), _quantiles(_histogram(road_v, 256), (0.98,))]
+        feats += [
+            road_v.mean(1, keepdim=True),
+            road_v.std(1, keepdim=True),
+            _quantiles(_histogram(road_v, 256), (0.98,)),
+        ]
         feats.append((road_v > sky_v.mean(1, keepdim=True)).float().mean(1, keepdim=True))
         feats += [sat[:, 0, r0:, c0:c1].mean((1, 2))[:, None], bchroma[:, 0, r0:, c0:c1].mean((1, 2))[:, None]]
 

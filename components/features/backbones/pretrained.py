@@ -91,7 +91,9 @@ class PretrainedBackbone(Backbone):
         try:
             config = transformers.AutoConfig.from_pretrained(source.location, **kw)
         except (OSError, ValueError) as e:
-            raise MissingWeightsError(f"pretrained backbone {self.name!r}: cannot read config.json from {where}: {e}") from None
+            raise MissingWeightsError(
+                f"pretrained backbone {self.name!r}: cannot read config.json from {where}: {e}"
+            ) from None
         if config.model_type not in self.model_types:
             raise ValueError(
                 f"pretrained backbone {self.name!r}: {where} holds a {config.model_type!r} model, "
@@ -103,7 +105,9 @@ class PretrainedBackbone(Backbone):
             model = model_cls.from_pretrained(source.location, dtype=torch.float32, **kw)
             processor = transformers.AutoImageProcessor.from_pretrained(source.location, backend="pil", **kw)
         except OSError as e:
-            raise MissingWeightsError(f"pretrained backbone {self.name!r}: cannot load weights from {where}: {e}") from None
+            raise MissingWeightsError(
+                f"pretrained backbone {self.name!r}: cannot load weights from {where}: {e}"
+            ) from None
         return model, processor
 
     def _feature_dim(self, config: Any) -> int:
@@ -111,7 +115,9 @@ class PretrainedBackbone(Backbone):
 
     def config(self) -> dict[str, Any]:
         model_config = {
-            k: v for k, v in self.model.config.to_dict().items() if not k.startswith("_") and k != "transformers_version"
+            k: v
+            for k, v in self.model.config.to_dict().items()
+            if not k.startswith("_") and k != "transformers_version"
         }
         return {"model_class": self.model_class, "model": model_config, "transform": self.transform.as_dict()}
 

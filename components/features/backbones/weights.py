@@ -70,7 +70,8 @@ def _how_to(backbone: str, repo_id: str, folder: str) -> str:
 def _check_folder(backbone: str, folder: Path, repo_id: str, kind: str) -> WeightsSource:
     if not folder.is_dir():
         raise MissingWeightsError(
-            f"pretrained backbone {backbone!r}: no weights folder at {folder} ({kind}); " + _how_to(backbone, repo_id, str(folder))
+            f"pretrained backbone {backbone!r}: no weights folder at {folder} ({kind}); "
+            + _how_to(backbone, repo_id, str(folder))
         )
     missing = [f for f in REQUIRED_FILES if not (folder / f).is_file()]
     if not any((folder / f).is_file() for f in WEIGHT_FILES):
@@ -93,7 +94,9 @@ def _in_hub_cache(repo_id: str, filename: str, cache_dir: str | os.PathLike[str]
     try:
         from huggingface_hub import try_to_load_from_cache
     except ImportError:
-        raise ImportError("pretrained backbones need Hugging Face transformers: pip install 'pidc[pretrained]'") from None
+        raise ImportError(
+            "pretrained backbones need Hugging Face transformers: pip install 'pidc[pretrained]'"
+        ) from None
 
     found = try_to_load_from_cache(repo_id, filename, cache_dir=cache_dir)
     return isinstance(found, str) and os.path.isfile(found)

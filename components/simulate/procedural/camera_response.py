@@ -46,7 +46,7 @@ def exposure_scale(radiance: np.ndarray, cal: Calibration = CALIBRATION) -> floa
     mean = float(lum.mean()) * cal.radiance_to_luminance
     ev = math.log2(max(mean, 1e-9) * 100.0 / 12.5)
     ev = min(max(ev, cal.exposure_window[0]), cal.exposure_window[1])
-    return 2.0 ** cal.exposure_compensation / (1.2 * 2.0 ** ev) * cal.radiance_to_luminance
+    return 2.0**cal.exposure_compensation / (1.2 * 2.0**ev) * cal.radiance_to_luminance
 
 
 def develop(radiance: np.ndarray, height: int, width: int, cal: Calibration = CALIBRATION) -> np.ndarray:

@@ -45,7 +45,9 @@ class Camera:
         return col, row, z
 
 
-def make_camera(origin: np.ndarray, fov_deg: float, pitch_deg: float, yaw_deg: float, height: int, width: int) -> Camera:
+def make_camera(
+    origin: np.ndarray, fov_deg: float, pitch_deg: float, yaw_deg: float, height: int, width: int
+) -> Camera:
     """Camera looking along +z, rotated by ``pitch`` (up positive) then ``yaw`` (right positive)."""
     p, y = math.radians(pitch_deg), math.radians(yaw_deg)
     rp = np.array([[1, 0, 0], [0, math.cos(p), math.sin(p)], [0, -math.sin(p), math.cos(p)]]).T
@@ -66,8 +68,9 @@ class Hits:
     normal: np.ndarray
 
 
-def _rects(cam: Camera, lo: np.ndarray, hi: np.ndarray, o: np.ndarray,
-           rows: tuple[int, int]) -> list[tuple[int, int, int, int] | None]:
+def _rects(
+    cam: Camera, lo: np.ndarray, hi: np.ndarray, o: np.ndarray, rows: tuple[int, int]
+) -> list[tuple[int, int, int, int] | None]:
     """Screen rectangles (r0, r1, c0, c1) of boxes lo/hi (n, 3), None when not visible.
 
     Boxes reaching behind the camera are clipped to z ≥ camera z + 0.1 (nothing behind is visible)."""
@@ -118,8 +121,9 @@ def rect_pixels(rects: list[tuple[int, int, int, int] | None], width: int) -> tu
     return (rows * width + cols).astype(np.int32), obj.astype(np.int32)
 
 
-def nearest_per_pixel(pix: np.ndarray, t: np.ndarray, obj: np.ndarray,
-                      n_pixels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def nearest_per_pixel(
+    pix: np.ndarray, t: np.ndarray, obj: np.ndarray, n_pixels: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per pixel, the smallest t among candidate hits ``(pix, t, obj)``: returns (pixels, t, object),
     pixels ascending; exact ties go to the larger object index (deterministic)."""
     best = np.full(n_pixels, np.inf, dtype=np.result_type(t.dtype, np.float32))
@@ -131,9 +135,17 @@ def nearest_per_pixel(pix: np.ndarray, t: np.ndarray, obj: np.ndarray,
     return hit, best[hit], owner[hit]
 
 
-def cast_objects(cam: Camera, dirs: np.ndarray, box_lo: np.ndarray, box_hi: np.ndarray,
-                 sphere_center: np.ndarray, sphere_radius: np.ndarray,
-                 t_min: np.ndarray, t_max: np.ndarray, rows: tuple[int, int] | None = None) -> Hits:
+def cast_objects(
+    cam: Camera,
+    dirs: np.ndarray,
+    box_lo: np.ndarray,
+    box_hi: np.ndarray,
+    sphere_center: np.ndarray,
+    sphere_radius: np.ndarray,
+    t_min: np.ndarray,
+    t_max: np.ndarray,
+    rows: tuple[int, int] | None = None,
+) -> Hits:
     """Closest box/sphere hit along each ray from ``cam.origin`` with ``t_min < t < t_max``.
 
     ``dirs`` (H, W, 3) unit directions; ``t_min``/``t_max`` (H, W). Boxes (N, 3) lo/hi corners,
@@ -167,7 +179,7 @@ def cast_objects(cam: Camera, dirs: np.ndarray, box_lo: np.ndarray, box_hi: np.n
     pix, obj = rect_pixels(_rects(cam, lo_s, hi_s, o, rows), W)
     oc = (sphere_center - o).astype(np.float32)
     bq = dc[0][pix] * oc[obj, 0] + dc[1][pix] * oc[obj, 1] + dc[2][pix] * oc[obj, 2]
-    disc = bq * bq - ((oc * oc).sum(axis=1) - sphere_radius ** 2).astype(np.float32)[obj]
+    disc = bq * bq - ((oc * oc).sum(axis=1) - sphere_radius**2).astype(np.float32)[obj]
     tn = bq - np.sqrt(np.maximum(disc, 0.0))
     ok = (disc > 0) & (tn > tmin[pix]) & (tn < tmax[pix])
     sp, st, so = nearest_per_pixel(pix[ok], tn[ok], obj[ok], H * W)

@@ -20,23 +20,63 @@ import numpy as np
 
 from .calibration import CALIBRATION, Calibration
 
-__all__ = ["Layout", "sample_layout", "MATERIALS", "SKY", "ROAD", "MARKING", "SIDEWALK", "GRASS",
-           "BUILDING", "WINDOW", "VEHICLE", "PEDESTRIAN", "FOLIAGE", "POLE"]
+__all__ = [
+    "Layout",
+    "sample_layout",
+    "MATERIALS",
+    "SKY",
+    "ROAD",
+    "MARKING",
+    "SIDEWALK",
+    "GRASS",
+    "BUILDING",
+    "WINDOW",
+    "VEHICLE",
+    "PEDESTRIAN",
+    "FOLIAGE",
+    "POLE",
+]
 
 # material ids of the per-pixel material map
 SKY, ROAD, MARKING, SIDEWALK, GRASS, BUILDING, WINDOW, VEHICLE, PEDESTRIAN, FOLIAGE, POLE = range(11)
-MATERIALS = ("sky", "road", "marking", "sidewalk", "grass", "building", "window", "vehicle",
-             "pedestrian", "foliage", "pole")
+MATERIALS = (
+    "sky",
+    "road",
+    "marking",
+    "sidewalk",
+    "grass",
+    "building",
+    "window",
+    "vehicle",
+    "pedestrian",
+    "foliage",
+    "pole",
+)
 
 # linear albedos of the scene palette (RGB)
 _ROAD_ALBEDO = (0.085, 0.085, 0.09)
 _SIDEWALK_ALBEDO = (0.26, 0.25, 0.24)
 _GRASS_ALBEDO = (0.07, 0.12, 0.035)
 _PAVEMENT_ALBEDO = (0.18, 0.17, 0.16)
-_FACADES = ((0.30, 0.27, 0.24), (0.45, 0.42, 0.38), (0.36, 0.18, 0.12), (0.22, 0.22, 0.24),
-            (0.55, 0.50, 0.42), (0.40, 0.33, 0.25), (0.28, 0.30, 0.33))
-_CARS = ((0.55, 0.55, 0.57), (0.04, 0.04, 0.045), (0.60, 0.04, 0.03), (0.05, 0.12, 0.40),
-         (0.75, 0.75, 0.74), (0.20, 0.22, 0.24), (0.45, 0.35, 0.10), (0.06, 0.25, 0.10))
+_FACADES = (
+    (0.30, 0.27, 0.24),
+    (0.45, 0.42, 0.38),
+    (0.36, 0.18, 0.12),
+    (0.22, 0.22, 0.24),
+    (0.55, 0.50, 0.42),
+    (0.40, 0.33, 0.25),
+    (0.28, 0.30, 0.33),
+)
+_CARS = (
+    (0.55, 0.55, 0.57),
+    (0.04, 0.04, 0.045),
+    (0.60, 0.04, 0.03),
+    (0.05, 0.12, 0.40),
+    (0.75, 0.75, 0.74),
+    (0.20, 0.22, 0.24),
+    (0.45, 0.35, 0.10),
+    (0.06, 0.25, 0.10),
+)
 _CLOTHES = ((0.05, 0.05, 0.06), (0.20, 0.10, 0.08), (0.10, 0.15, 0.35), (0.40, 0.40, 0.38), (0.45, 0.10, 0.10))
 _FOLIAGE = ((0.05, 0.10, 0.03), (0.07, 0.12, 0.03), (0.09, 0.11, 0.04))
 _TRUNK = (0.10, 0.07, 0.05)
@@ -120,9 +160,19 @@ def _jitter(rng: np.random.Generator, albedo: tuple, amount: float = 0.15) -> tu
     return tuple(float(a) * float(rng.uniform(1 - amount, 1 + amount)) for a in albedo)
 
 
-def _buildings(b: _Builder, rng: np.random.Generator, side: int, x_front: float, length: float,
-               span: tuple[float, float], height: tuple[float, float], gap: tuple[float, float], gap_p: float,
-               depth: float, block0: int) -> int:
+def _buildings(
+    b: _Builder,
+    rng: np.random.Generator,
+    side: int,
+    x_front: float,
+    length: float,
+    span: tuple[float, float],
+    height: tuple[float, float],
+    gap: tuple[float, float],
+    gap_p: float,
+    depth: float,
+    block0: int,
+) -> int:
     """Blocks along one side (side=+1 right, -1 left) from z=-20 to ``length``; returns next block id."""
     z = -20.0 + float(rng.uniform(0, 8))
     block = block0
@@ -154,8 +204,12 @@ def _lamps(b: _Builder, rng: np.random.Generator, x_pole: float, arm: float, len
     h = float(rng.uniform(*cal.lamp_height))
     while z < min(length, 180.0):
         b.box((x_pole - 0.1, 0.0, z - 0.1), (x_pole + 0.1, h, z + 0.1), _POLE_ALBEDO, 10)
-        b.box((min(x_pole, x_pole + arm) - 0.05, h - 0.12, z - 0.05),
-              (max(x_pole, x_pole + arm) + 0.05, h, z + 0.05), _POLE_ALBEDO, 10)
+        b.box(
+            (min(x_pole, x_pole + arm) - 0.05, h - 0.12, z - 0.05),
+            (max(x_pole, x_pole + arm) + 0.05, h, z + 0.05),
+            _POLE_ALBEDO,
+            10,
+        )
         b.lamps.append((x_pole + arm, h - 0.2, z))
         z += spacing
 
@@ -211,7 +265,9 @@ def sample_layout(rng: np.random.Generator, cal: Calibration = CALIBRATION) -> L
         b.box((-0.3, 0.0, -10.0), (0.3, 0.9, length), (0.35, 0.35, 0.34), 10)  # concrete barrier
         _lamps(b, rng, 0.0, 0.0, length, cal)
         if rng.random() < 0.5:
-            _buildings(b, rng, +1, road_right + float(rng.uniform(25, 60)), length, (20, 60), (5, 14), (20, 80), 0.5, 30.0, 0)
+            _buildings(
+                b, rng, +1, road_right + float(rng.uniform(25, 60)), length, (20, 60), (5, 14), (20, 80), 0.5, 30.0, 0
+            )
         for _ in range(int(rng.poisson(8))):
             side = 1 if rng.random() < 0.5 else -1
             x = side * (road_right + float(rng.uniform(4, 25))) if side > 0 else road_left - float(rng.uniform(4, 25))
@@ -266,8 +322,13 @@ def sample_layout(rng: np.random.Generator, cal: Calibration = CALIBRATION) -> L
                     sb = float(rng.uniform(10, 30))
                     x0 = road_right + sb if side > 0 else road_left - sb - 10
                     h = float(rng.uniform(4, 7))
-                    b.box((x0, 0.0, z), (x0 + 10, h, z + float(rng.uniform(8, 14))),
-                          _jitter(rng, _pick(rng, _FACADES)), 5, block)
+                    b.box(
+                        (x0, 0.0, z),
+                        (x0 + 10, h, z + float(rng.uniform(8, 14))),
+                        _jitter(rng, _pick(rng, _FACADES)),
+                        5,
+                        block,
+                    )
                     block += 1
             for _ in range(int(rng.poisson(16))):
                 side = 1 if rng.random() < 0.5 else -1
@@ -289,7 +350,11 @@ def sample_layout(rng: np.random.Generator, cal: Calibration = CALIBRATION) -> L
         if sidewalk > 0:
             for _ in range(int(rng.poisson(cal.pedestrians_mean[arch_idx]))):
                 side = 1 if rng.random() < 0.5 else -1
-                x = road_right + float(rng.uniform(0.4, sidewalk - 0.4)) if side > 0 else road_left - float(rng.uniform(0.4, sidewalk - 0.4))
+                x = (
+                    road_right + float(rng.uniform(0.4, sidewalk - 0.4))
+                    if side > 0
+                    else road_left - float(rng.uniform(0.4, sidewalk - 0.4))
+                )
                 _pedestrian(b, rng, x, float(rng.uniform(4, 50)))
         elif arch == "rural":
             for _ in range(int(rng.poisson(cal.pedestrians_mean[arch_idx]))):
@@ -321,11 +386,29 @@ def sample_layout(rng: np.random.Generator, cal: Calibration = CALIBRATION) -> L
         return np.asarray(x, dtype=np.float64).reshape(-1, n)
 
     return Layout(
-        archetype=arch, camera=camera, ego_extent_z=extent_z, fov_deg=fov, pitch_deg=pitch, yaw_deg=yaw,
-        heading_deg=heading, wind_azimuth_deg=wind, road_left=road_left, road_right=road_right, median=median,
-        sidewalk=sidewalk, outer_albedo=outer, markings=arr(markings, 3),
-        box_lo=arr(b.lo, 3), box_hi=arr(b.hi, 3), box_albedo=arr(b.albedo, 3),
-        box_material=np.asarray(b.material, dtype=np.int64), box_block=np.asarray(b.block, dtype=np.int64),
-        sphere_center=arr(b.sc, 3), sphere_radius=np.asarray(b.sr, dtype=np.float64), sphere_albedo=arr(b.sa, 3),
-        lamps=arr(b.lamps, 3), lights=arr(b.lights, 3), light_is_head=np.asarray(b.head, dtype=bool),
+        archetype=arch,
+        camera=camera,
+        ego_extent_z=extent_z,
+        fov_deg=fov,
+        pitch_deg=pitch,
+        yaw_deg=yaw,
+        heading_deg=heading,
+        wind_azimuth_deg=wind,
+        road_left=road_left,
+        road_right=road_right,
+        median=median,
+        sidewalk=sidewalk,
+        outer_albedo=outer,
+        markings=arr(markings, 3),
+        box_lo=arr(b.lo, 3),
+        box_hi=arr(b.hi, 3),
+        box_albedo=arr(b.albedo, 3),
+        box_material=np.asarray(b.material, dtype=np.int64),
+        box_block=np.asarray(b.block, dtype=np.int64),
+        sphere_center=arr(b.sc, 3),
+        sphere_radius=np.asarray(b.sr, dtype=np.float64),
+        sphere_albedo=arr(b.sa, 3),
+        lamps=arr(b.lamps, 3),
+        lights=arr(b.lights, 3),
+        light_is_head=np.asarray(b.head, dtype=bool),
     )

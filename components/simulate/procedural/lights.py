@@ -24,8 +24,15 @@ __all__ = ["night_lights"]
 _F32 = np.float32
 
 
-def _sprites(cam: Camera, pts: np.ndarray, amp: np.ndarray, colour: np.ndarray, sigma: float,
-             depth_map: np.ndarray, out: np.ndarray) -> None:
+def _sprites(
+    cam: Camera,
+    pts: np.ndarray,
+    amp: np.ndarray,
+    colour: np.ndarray,
+    sigma: float,
+    depth_map: np.ndarray,
+    out: np.ndarray,
+) -> None:
     """Add Gaussian sprites (σ px) of amplitude amp·colour (K, 3) at the visible projections of
     pts (K, 3) to ``out`` (3, H·W) channel-planar; an emitter behind a nearer surface is left out."""
     H, W = depth_map.shape
@@ -56,8 +63,16 @@ def _sprites(cam: Camera, pts: np.ndarray, amp: np.ndarray, colour: np.ndarray, 
         out[c] += np.bincount(flat, weights=w * cols[k, c], minlength=H * W)
 
 
-def night_lights(lay: Layout, cam: Camera, pos: np.ndarray, normal: np.ndarray, albedo: np.ndarray,
-                 depth: np.ndarray, window_lit: np.ndarray, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
+def night_lights(
+    lay: Layout,
+    cam: Camera,
+    pos: np.ndarray,
+    normal: np.ndarray,
+    albedo: np.ndarray,
+    depth: np.ndarray,
+    window_lit: np.ndarray,
+    cal: Calibration,
+) -> tuple[np.ndarray, np.ndarray]:
     """(night radiance (3, N), halo radiance at full fog (3, N)), float32, channel-planar.
 
     ``pos``/``normal``/``albedo`` (N, 3), ``depth`` (N,) (inf: sky), ``window_lit`` (N,) bool.
@@ -90,7 +105,9 @@ def night_lights(lay: Layout, cam: Camera, pos: np.ndarray, normal: np.ndarray, 
         acc += cone * np.maximum(vx * ns[:, 0] + vy * ns[:, 1] + vz * ns[:, 2], 0.0) / (r2 * r)
     e_head = cal.headlight_intensity * full(acc)
     head_col = np.array([0.95, 0.95, 1.0])
-    night = albedo.T.astype(_F32) * ((e_lamp[None, :] * lamp_col[:, None] + e_head[None, :] * head_col[:, None]) / math.pi).astype(_F32)
+    night = albedo.T.astype(_F32) * (
+        (e_lamp[None, :] * lamp_col[:, None] + e_head[None, :] * head_col[:, None]) / math.pi
+    ).astype(_F32)
     night[:, window_lit] += (cal.window_emission * np.array([1.0, 0.8, 0.55], _F32))[:, None]
     depth_map = depth.reshape(H, W)
     spr = np.zeros((3, N))
@@ -99,12 +116,12 @@ def night_lights(lay: Layout, cam: Camera, pos: np.ndarray, normal: np.ndarray, 
         dist = np.linalg.norm(lay.lamps - o, axis=1)
         near = np.minimum(1.0, cal.lamp_reference_distance / dist)
         cols = np.tile(lamp_col, (len(dist), 1))
-        _sprites(cam, lay.lamps, cal.lamp_core * near ** 2, cols, cal.sprite_px * px, depth_map, spr)
+        _sprites(cam, lay.lamps, cal.lamp_core * near**2, cols, cal.sprite_px * px, depth_map, spr)
         _sprites(cam, lay.lamps, cal.lamp_halo * near, cols, cal.lamp_halo_px * px, depth_map, halo)
     if len(lay.lights):
         dist = np.linalg.norm(lay.lights - o, axis=1)
         near = np.minimum(1.0, cal.light_reference_distance / dist)
-        amp = np.where(lay.light_is_head, cal.headlight_core, cal.taillight_core) * near ** 2
+        amp = np.where(lay.light_is_head, cal.headlight_core, cal.taillight_core) * near**2
         cols = np.where(lay.light_is_head[:, None], np.array([1.0, 0.97, 0.9]), np.array([1.0, 0.05, 0.02]))
         _sprites(cam, lay.lights, amp, cols, 0.8 * cal.sprite_px * px, depth_map, spr)
         _sprites(cam, lay.lights, 0.4 * cal.lamp_halo * near, cols, 0.6 * cal.lamp_halo_px * px, depth_map, halo)

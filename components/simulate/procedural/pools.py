@@ -50,7 +50,7 @@ def rain_pool(rng: np.random.Generator, height: int, width: int, cal: Calibratio
     margin = cal.streak_max_px * height / 128.0
     col = rng.uniform(-margin, width + margin, n)
     row = rng.uniform(-margin, height + margin, n)
-    a3, b3 = cal.rain_near ** 3, cal.rain_far ** 3
+    a3, b3 = cal.rain_near**3, cal.rain_far**3
     z = np.cbrt(a3 + rng.random(n) * (b3 - a3))
     u = rng.random(n)
     return RainPool(col.astype(_F32), row.astype(_F32), z.astype(_F32), u.astype(_F32))
@@ -65,8 +65,15 @@ def lens_pool(rng: np.random.Generator, height: int, width: int, cal: Calibratio
     lrad = rng.uniform(*cal.lens_drop_radius, n) * W
     lpri = rng.random(n)
     m = cal.lens_drop_magnification
-    rects = [(max(int(lr[k] - lrad[k]) - 1, 0), min(int(lr[k] + lrad[k]) + 2, H),
-              max(int(lc[k] - lrad[k]) - 1, 0), min(int(lc[k] + lrad[k]) + 2, W)) for k in range(n)]
+    rects = [
+        (
+            max(int(lr[k] - lrad[k]) - 1, 0),
+            min(int(lr[k] + lrad[k]) + 2, H),
+            max(int(lc[k] - lrad[k]) - 1, 0),
+            min(int(lc[k] + lrad[k]) + 2, W),
+        )
+        for k in range(n)
+    ]
     pix, drop = rect_pixels(rects, W)
     dx, dy = pix % W - lc[drop], pix // W - lr[drop]
     rho2 = (dx * dx + dy * dy) / lrad[drop] ** 2

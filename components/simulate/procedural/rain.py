@@ -56,7 +56,11 @@ def streak_alpha(scene: Scene, precipitation: float, wind: float, cal: Calibrati
     ri = rows.astype(np.int32)
     inside = (cols >= 0) & (ci < scene.width) & (rows >= 0) & (ri < scene.height)
     pix = (ri * scene.width + ci)[inside]
-    a = cal.streak_alpha * (precipitation / 100.0) ** cal.streak_alpha_exponent * np.clip(cal.streak_near_depth / z, cal.streak_far_alpha, 1.0)
+    a = (
+        cal.streak_alpha
+        * (precipitation / 100.0) ** cal.streak_alpha_exponent
+        * np.clip(cal.streak_near_depth / z, cal.streak_far_alpha, 1.0)
+    )
     w = np.broadcast_to((a * np.minimum(length / (k - 1), 1.0))[:, None], cols.shape)[inside]
     zz = np.broadcast_to(z[:, None], cols.shape)[inside]
     w = np.where(scene.depth[pix] > zz, w, 0.0)

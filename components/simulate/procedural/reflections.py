@@ -46,8 +46,15 @@ def sky_fog_path(dir_y: np.ndarray, cal: Calibration) -> np.ndarray:
     return np.minimum(cal.fog_scale_height / np.maximum(dir_y, 1e-6), cal.sky_max_path).astype(_F32)
 
 
-def road_reflections(lay: Layout, cam: Camera, dirs: np.ndarray, pos: np.ndarray, road: np.ndarray,
-                     rng: np.random.Generator, cal: Calibration) -> RoadReflections:
+def road_reflections(
+    lay: Layout,
+    cam: Camera,
+    dirs: np.ndarray,
+    pos: np.ndarray,
+    road: np.ndarray,
+    rng: np.random.Generator,
+    cal: Calibration,
+) -> RoadReflections:
     """Reflection lookups of the ``road`` pixels (N,) bool; ``dirs``/``pos`` (N, 3); ``rng`` is the
     scene's puddle stream (noise texture and ripple jitter)."""
     H, W = cam.height, cam.width
@@ -93,5 +100,12 @@ def road_reflections(lay: Layout, cam: Camera, dirs: np.ndarray, pos: np.ndarray
     k = 64 / cal.puddle_scale
     quant = gaussian_cdf(sample_texture(tex, pos[px, 0] * k, pos[px, 2] * k))
     order = np.argsort(quant, kind="stable")
-    return RoadReflections(px[order], quant[order].astype(_F32), fresnel[order].astype(_F32), source[order],
-                           ripple[order], path[order], sky_dirs.astype(_F32))
+    return RoadReflections(
+        px[order],
+        quant[order].astype(_F32),
+        fresnel[order].astype(_F32),
+        source[order],
+        ripple[order],
+        path[order],
+        sky_dirs.astype(_F32),
+    )

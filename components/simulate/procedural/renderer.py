@@ -61,8 +61,9 @@ class ProceduralSimulator:
     (least recently used evicted); :meth:`scene` exposes a scene's cached geometry and masks. ``version`` = ``"procedural-<algorithm>+<calibration hash>"``.
     """
 
-    def __init__(self, height: int = 128, width: int = 128, *, cache_size: int = 16,
-                 calibration: Calibration = CALIBRATION) -> None:
+    def __init__(
+        self, height: int = 128, width: int = 128, *, cache_size: int = 16, calibration: Calibration = CALIBRATION
+    ) -> None:
         for name, v in (("height", height), ("width", width), ("cache_size", cache_size)):
             if isinstance(v, bool) or not isinstance(v, numbers.Integral):
                 raise TypeError(f"{name} must be an int, got {type(v).__name__}")

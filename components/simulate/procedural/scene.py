@@ -108,10 +108,13 @@ def build_scene(scene_seed: int, height: int, width: int, cal: Calibration = CAL
     dy = dirs[..., 1]
     with np.errstate(divide="ignore"):
         t_ground = np.where(dy < -1e-6, o[1] / np.maximum(-dy, 1e-12), np.inf)
-    hits = cast_objects(cam, dirs, lay.box_lo, lay.box_hi, lay.sphere_center, lay.sphere_radius,
-                        np.full((H, W), 0.05), t_ground)
+    hits = cast_objects(
+        cam, dirs, lay.box_lo, lay.box_hi, lay.sphere_center, lay.sphere_radius, np.full((H, W), 0.05), t_ground
+    )
     d = dirs.reshape(-1, 3)
-    surf = surfaces(lay, o, d, hits, t_ground.ravel(), scene_texture(r_tex, "surface", 64, 0.5, cal.texture_seed), r_window, cal)
+    surf = surfaces(
+        lay, o, d, hits, t_ground.ravel(), scene_texture(r_tex, "surface", 64, 0.5, cal.texture_seed), r_window, cal
+    )
     sky = surf.material == SKY
     depth = np.where(sky, np.inf, surf.t)
     fog_path = np.maximum(np.where(sky, 0.0, depth) - FIXED["fog_distance"], 0.0).astype(_F32)
@@ -127,12 +130,26 @@ def build_scene(scene_seed: int, height: int, width: int, cal: Calibration = CAL
     sky_quantile = gaussian_cdf(sample_texture(ctex, sky_dirs[:, 0] * k, sky_dirs[:, 2] * k))
     night, halo = night_lights(lay, cam, surf.pos, surf.normal, surf.albedo, depth, surf.window_lit, cal)
     return Scene(
-        seed=int(scene_seed), height=H, width=W, layout=lay, camera=cam,
-        dirs=d.astype(_F32), material=surf.material, depth=depth.astype(_F32), fog_path=fog_path,
-        albedo=np.ascontiguousarray(surf.albedo.T, _F32), normal=surf.normal.astype(_F32), ambient_factor=ambient_factor,
-        night_radiance=night, halo=halo,
-        sky_pixels=sky_pixels, sky_dirs=sky_dirs, sky_quantile=sky_quantile.astype(_F32),
+        seed=int(scene_seed),
+        height=H,
+        width=W,
+        layout=lay,
+        camera=cam,
+        dirs=d.astype(_F32),
+        material=surf.material,
+        depth=depth.astype(_F32),
+        fog_path=fog_path,
+        albedo=np.ascontiguousarray(surf.albedo.T, _F32),
+        normal=surf.normal.astype(_F32),
+        ambient_factor=ambient_factor,
+        night_radiance=night,
+        halo=halo,
+        sky_pixels=sky_pixels,
+        sky_dirs=sky_dirs,
+        sky_quantile=sky_quantile.astype(_F32),
         sky_path=sky_fog_path(sky_dirs[:, 1], cal),
-        reflections=refl, shadow=shadow_geometry(lay, surf.material, surf.normal, surf.pos, surf.ground, cal),
-        rain=rain_pool(r_rain, H, W, cal), lens=lens_pool(r_lens, H, W, cal),
+        reflections=refl,
+        shadow=shadow_geometry(lay, surf.material, surf.normal, surf.pos, surf.ground, cal),
+        rain=rain_pool(r_rain, H, W, cal),
+        lens=lens_pool(r_lens, H, W, cal),
     )

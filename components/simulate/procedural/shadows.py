@@ -11,10 +11,11 @@ because those dim the direct sun, not the shadow mask.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
-from dataclasses import dataclass
 from .calibration import CALIBRATION, Calibration
 from .layout import BUILDING, FOLIAGE, PEDESTRIAN, POLE, VEHICLE, WINDOW, Layout
 
@@ -51,8 +52,14 @@ class ShadowGeometry:
     profile_dz: float
 
 
-def shadow_geometry(lay: Layout, material: np.ndarray, normal: np.ndarray, pos: np.ndarray,
-                    ground: np.ndarray, cal: Calibration = CALIBRATION) -> ShadowGeometry:
+def shadow_geometry(
+    lay: Layout,
+    material: np.ndarray,
+    normal: np.ndarray,
+    pos: np.ndarray,
+    ground: np.ndarray,
+    cal: Calibration = CALIBRATION,
+) -> ShadowGeometry:
     """Receivers and occluders of a scene; ``material`` (N,), ``normal``/``pos`` (N, 3), ``ground`` (N,) bool."""
     x0, x1, z0, z1 = cal.shadow_map_extent
     cell = cal.shadow_map_cell
@@ -66,12 +73,24 @@ def shadow_geometry(lay: Layout, material: np.ndarray, normal: np.ndarray, pos: 
 
     ground_pixels = np.flatnonzero(ground)
     foot_pixels = np.flatnonzero(np.isin(material, (VEHICLE, PEDESTRIAN, POLE, FOLIAGE)))
-    keep = ~((lay.box_material == VEHICLE) & (lay.box_hi[:, 1] < 0.35)) & (lay.box_lo[:, 1] < 1.0)  # no wheels, lamp arms
+    keep = ~((lay.box_material == VEHICLE) & (lay.box_hi[:, 1] < 0.35)) & (
+        lay.box_lo[:, 1] < 1.0
+    )  # no wheels, lamp arms
     crown = 0.8 * lay.sphere_radius  # crowns shadow like their inscribed boxes
-    rect = np.concatenate([
-        np.stack([lay.box_lo[keep, 0], lay.box_lo[keep, 2], lay.box_hi[keep, 0], lay.box_hi[keep, 2]], 1),
-        np.stack([lay.sphere_center[:, 0] - crown, lay.sphere_center[:, 2] - crown,
-                  lay.sphere_center[:, 0] + crown, lay.sphere_center[:, 2] + crown], 1)])
+    rect = np.concatenate(
+        [
+            np.stack([lay.box_lo[keep, 0], lay.box_lo[keep, 2], lay.box_hi[keep, 0], lay.box_hi[keep, 2]], 1),
+            np.stack(
+                [
+                    lay.sphere_center[:, 0] - crown,
+                    lay.sphere_center[:, 2] - crown,
+                    lay.sphere_center[:, 0] + crown,
+                    lay.sphere_center[:, 2] + crown,
+                ],
+                1,
+            ),
+        ]
+    )
     base = np.concatenate([np.zeros(int(keep.sum())), lay.sphere_center[:, 1] - crown])
     top = np.concatenate([lay.box_hi[keep, 1], lay.sphere_center[:, 1] + crown])
     tall = np.concatenate([np.isin(lay.box_material[keep], (BUILDING, POLE)), np.ones(len(crown), bool)])
@@ -88,20 +107,32 @@ def shadow_geometry(lay: Layout, material: np.ndarray, normal: np.ndarray, pos: 
     for side, sel in ((0, is_b & (lay.box_hi[:, 0] < 0)), (1, is_b & (lay.box_lo[:, 0] > 0))):
         if sel.any():
             planes[side] = lay.box_hi[sel, 0].max() if side == 0 else lay.box_lo[sel, 0].min()
-            for lo, hi in zip(lay.box_lo[sel], lay.box_hi[sel]):
+            for lo, hi in zip(lay.box_lo[sel], lay.box_hi[sel], strict=False):
                 a, b = max(int((lo[2] - prof_z0) / prof_dz), 0), max(int((hi[2] - prof_z0) / prof_dz), 0)
                 prof[side, a:b] = np.maximum(prof[side, a:b], hi[1])
     fac = np.flatnonzero(np.isin(material, (BUILDING, WINDOW)) & (np.abs(normal[:, 0]) > 0.5))
     return ShadowGeometry(
-        ground_pixels=ground_pixels, ground_cell=cells(pos[ground_pixels]),
-        foot_pixels=foot_pixels, foot_cell=cells(pos[foot_pixels]),
-        facade_pixels=fac, facade_pos=pos[fac].astype(np.float32),
+        ground_pixels=ground_pixels,
+        ground_cell=cells(pos[ground_pixels]),
+        foot_pixels=foot_pixels,
+        foot_cell=cells(pos[foot_pixels]),
+        facade_pixels=fac,
+        facade_pos=pos[fac].astype(np.float32),
         facade_side=np.where(normal[fac, 0] < 0, 1, -1).astype(np.int8),
-        rect=rect[order], base=base[order], top=top[order], tall_count=int(tall.sum()),
-        profile_x=planes, profile_h=prof.astype(np.float32), profile_z0=prof_z0, profile_dz=prof_dz)
+        rect=rect[order],
+        base=base[order],
+        top=top[order],
+        tall_count=int(tall.sum()),
+        profile_x=planes,
+        profile_h=prof.astype(np.float32),
+        profile_z0=prof_z0,
+        profile_dz=prof_dz,
+    )
 
 
-def sun_visibility(sh: ShadowGeometry, n_pixels: int, sun_dir: np.ndarray, cal: Calibration = CALIBRATION) -> np.ndarray:
+def sun_visibility(
+    sh: ShadowGeometry, n_pixels: int, sun_dir: np.ndarray, cal: Calibration = CALIBRATION
+) -> np.ndarray:
     """Direct-sun visibility ``(n_pixels,)`` float32 in {0, 1} for the pixels of a scene with shadow geometry ``sh``;
     all zeros when the sun is below 2° (its direct light is negligible then)."""
     N = n_pixels
@@ -119,8 +150,15 @@ def sun_visibility(sh: ShadowGeometry, n_pixels: int, sun_dir: np.ndarray, cal: 
     kt = sh.top / sy
     bx, bz = -kb * sx, -kb * sz
     vx, vz = (kb - kt) * sx, (kb - kt) * sz
-    corners = np.stack([np.stack([rect[:, 0], rect[:, 1]], 1), np.stack([rect[:, 2], rect[:, 1]], 1),
-                        np.stack([rect[:, 2], rect[:, 3]], 1), np.stack([rect[:, 0], rect[:, 3]], 1)], 1)
+    corners = np.stack(
+        [
+            np.stack([rect[:, 0], rect[:, 1]], 1),
+            np.stack([rect[:, 2], rect[:, 1]], 1),
+            np.stack([rect[:, 2], rect[:, 3]], 1),
+            np.stack([rect[:, 0], rect[:, 3]], 1),
+        ],
+        1,
+    )
     corners = corners + np.stack([bx, bz], 1)[:, None, :]
     a = np.where(vx >= 0, np.where(vz >= 0, 0, 3), np.where(vz >= 0, 1, 2))
     ar = np.arange(len(rect))[:, None]
@@ -152,8 +190,9 @@ def sun_visibility(sh: ShadowGeometry, n_pixels: int, sun_dir: np.ndarray, cal: 
         toward = (side > 0) & (sx < 0) | (side < 0) & (sx > 0)
         t = (plane - p[:, 0]) / (sx if abs(sx) > 1e-6 else 1e-6)
         y = p[:, 1] + t * sy
-        zi = np.clip(((p[:, 2] + t * sz - sh.profile_z0) / sh.profile_dz).astype(np.int64), 0,
-                     sh.profile_h.shape[1] - 1)
+        zi = np.clip(
+            ((p[:, 2] + t * sz - sh.profile_z0) / sh.profile_dz).astype(np.int64), 0, sh.profile_h.shape[1] - 1
+        )
         h = np.where(side > 0, sh.profile_h[0, zi], sh.profile_h[1, zi])
         occluded = toward & (t > 0) & (y < h) & (np.abs(plane) < 1e5)
         vis[sh.facade_pixels] = np.where(occluded, 0.0, 1.0)

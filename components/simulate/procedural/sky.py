@@ -52,10 +52,12 @@ def _transmittance(h_deg: float, cal: Calibration) -> np.ndarray:
     h = max(h_deg, -0.5)
     m = 1.0 / (math.sin(math.radians(max(h, 0.0))) + 0.50572 * (h + 6.07995) ** -1.6364)
     lam = np.asarray(cal.wavelengths_um)
-    return np.exp(-(cal.rayleigh_tau * lam ** -4.05 + cal.aerosol_tau) * m)
+    return np.exp(-(cal.rayleigh_tau * lam**-4.05 + cal.aerosol_tau) * m)
 
 
-def sun_sky(altitude: float, rel_azimuth: float, cloudiness: float, fog: float, cal: Calibration = CALIBRATION) -> SunSky:
+def sun_sky(
+    altitude: float, rel_azimuth: float, cloudiness: float, fog: float, cal: Calibration = CALIBRATION
+) -> SunSky:
     """The sun/sky state: ``altitude``, ``rel_azimuth`` in degrees, ``cloudiness``, ``fog`` in %."""
     h, phi = math.radians(altitude), math.radians(rel_azimuth)
     s = np.array([math.cos(h) * math.sin(phi), math.sin(h), math.cos(h) * math.cos(phi)])
@@ -63,11 +65,11 @@ def sun_sky(altitude: float, rel_azimuth: float, cloudiness: float, fog: float, 
     trans = _transmittance(altitude, cal)
     sun_clear = cal.sun_irradiance * trans * edge
     C = cloudiness / 100.0
-    cloud_keep = 1.0 - cal.cloud_dimming * C ** cal.cloud_dimming_exponent
+    cloud_keep = 1.0 - cal.cloud_dimming * C**cal.cloud_dimming_exponent
     fog_keep = 1.0 - cal.fog_sun_dimming * fog / 100.0
     sun = sun_clear * cloud_keep * fog_keep
     sin_h = max(math.sin(h), 0.0)
-    level = sin_h ** cal.sky_exponent + cal.twilight_level * math.exp(min(altitude, 0.0) / cal.twilight_scale_deg)
+    level = sin_h**cal.sky_exponent + cal.twilight_level * math.exp(min(altitude, 0.0) / cal.twilight_scale_deg)
     sky = cal.sky_irradiance * level + cal.night_sky
     day = min(max(level / (cal.twilight_level * 2), 0.0), 1.0)
     zen = np.asarray(cal.zenith_colour, dtype=np.float64)
@@ -90,23 +92,33 @@ def cloud_coverage(quantile: np.ndarray, cloudiness: float, cal: Calibration = C
     return np.clip((quantile - (1.0 - C * (1.0 + w))) * (1.0 / w), 0.0, 1.0)
 
 
-def sky_radiance(state: SunSky, dir_y: np.ndarray, cos_gamma: np.ndarray, alpha: np.ndarray,
-                 cloudiness: float, cal: Calibration = CALIBRATION) -> np.ndarray:
+def sky_radiance(
+    state: SunSky,
+    dir_y: np.ndarray,
+    cos_gamma: np.ndarray,
+    alpha: np.ndarray,
+    cloudiness: float,
+    cal: Calibration = CALIBRATION,
+) -> np.ndarray:
     """Sky radiance (3, n) float32 (channel-planar) for rays with elevation sine ``dir_y`` (n,),
     cosine ``cos_gamma`` of the angle to the sun (n,) and cloud coverage ``alpha`` (n,)."""
     e = np.clip(dir_y, 0.0, 1.0)
     one_e = 1.0 - e
-    w = one_e * one_e * one_e if cal.horizon_power == 3.0 else one_e ** cal.horizon_power
+    w = one_e * one_e * one_e if cal.horizon_power == 3.0 else one_e**cal.horizon_power
     zen = state.zenith.astype(np.float32)[:, None]
     hor = state.horizon.astype(np.float32)[:, None]
     sun = state.sun_clear.astype(np.float32)[:, None]
-    lobe = cal.mie_halo * henyey_greenstein(cos_gamma, cal.mie_g) + cal.glare * henyey_greenstein(cos_gamma, cal.glare_g)
+    lobe = cal.mie_halo * henyey_greenstein(cos_gamma, cal.mie_g) + cal.glare * henyey_greenstein(
+        cos_gamma, cal.glare_g
+    )
     clear = np.float32(state.sky) * zen + (np.float32(state.sky) * (hor - zen)) * w[None, :] + sun * lobe[None, :]
     C = cloudiness / 100.0
     if C <= 0.0:
         return clear
     grey = np.float32(state.sky * 0.5 * (float(zen.mean()) + float(hor.mean())))
-    lit = np.float32(cal.cloud_sun) * (1.0 + np.float32(cal.cloud_silver * 0.4 * math.pi) * henyey_greenstein(cos_gamma, cal.cloud_silver_g))
+    lit = np.float32(cal.cloud_sun) * (
+        1.0 + np.float32(cal.cloud_silver * 0.4 * math.pi) * henyey_greenstein(cos_gamma, cal.cloud_silver_g)
+    )
     thin = np.float32(1.0 - cal.cloud_thickening * C)
     cloud = thin * (cal.cloud_ambient * grey + (sun * np.float32(max(state.sun_dir[1], 0.05) ** 0.5)) * lit[None, :])
     if state.night > 0:

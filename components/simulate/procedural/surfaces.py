@@ -39,14 +39,18 @@ _GRASS = (0.07, 0.12, 0.035)
 _F32 = np.float32
 
 
-def _ground_albedo(lay: Layout, x: np.ndarray, z: np.ndarray, tex: np.ndarray, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
+def _ground_albedo(
+    lay: Layout, x: np.ndarray, z: np.ndarray, tex: np.ndarray, cal: Calibration
+) -> tuple[np.ndarray, np.ndarray]:
     """Material id and albedo (n, 3) of ground points at world (x, z)."""
     n = x.shape[0]
     mat = np.full(n, GRASS, np.int8)
     alb = np.tile(np.asarray(lay.outer_albedo, _F32), (n, 1))
     if lay.outer_albedo != _GRASS:
         mat[:] = SIDEWALK
-    side = (x > lay.road_right) & (x <= lay.road_right + lay.sidewalk) | (x < lay.road_left) & (x >= lay.road_left - lay.sidewalk)
+    side = (x > lay.road_right) & (x <= lay.road_right + lay.sidewalk) | (x < lay.road_left) & (
+        x >= lay.road_left - lay.sidewalk
+    )
     mat[side] = SIDEWALK
     alb[side] = lay.sidewalk_albedo
     road = (x >= lay.road_left) & (x <= lay.road_right) & ~((x > lay.median[0]) & (x < lay.median[1]))
@@ -67,8 +71,16 @@ def _ground_albedo(lay: Layout, x: np.ndarray, z: np.ndarray, tex: np.ndarray, c
     return mat, alb
 
 
-def surfaces(lay: Layout, origin: np.ndarray, dirs: np.ndarray, hits: Hits, t_ground: np.ndarray,
-             tex: np.ndarray, r_window: np.random.Generator, cal: Calibration) -> Surfaces:
+def surfaces(
+    lay: Layout,
+    origin: np.ndarray,
+    dirs: np.ndarray,
+    hits: Hits,
+    t_ground: np.ndarray,
+    tex: np.ndarray,
+    r_window: np.random.Generator,
+    cal: Calibration,
+) -> Surfaces:
     """First-hit surface attributes; ``dirs`` (N, 3), ``t_ground`` (N,), ``tex`` a standardized
     texture (texels), ``r_window`` the scene's window stream."""
     H, W = hits.t.shape
@@ -106,10 +118,22 @@ def surfaces(lay: Layout, origin: np.ndarray, dirs: np.ndarray, hits: Hits, t_gr
         y = p_b[:, 1]
         top = lay.box_hi[index[bld], 1]
         fa, fy = np.mod(along / 3.0, 1.0), np.mod(y / 3.3, 1.0)
-        win = (fa > 0.22) & (fa < 0.78) & (fy > 0.35) & (fy < 0.85) & (y > 3.0) & (y < top - 0.8) & (np.abs(n_b[:, 1]) < 0.5)
+        win = (
+            (fa > 0.22)
+            & (fa < 0.78)
+            & (fy > 0.35)
+            & (fy < 0.85)
+            & (y > 3.0)
+            & (y < top - 0.8)
+            & (np.abs(n_b[:, 1]) < 0.5)
+        )
         lit_table = r_window.random(4096) < cal.window_lit_fraction
-        key = np.mod(lay.box_block[index[bld]] * 7919 + np.floor(along / 3.0).astype(np.int64) * 131
-                     + np.floor(y / 3.3).astype(np.int64) * 17, 4096)
+        key = np.mod(
+            lay.box_block[index[bld]] * 7919
+            + np.floor(along / 3.0).astype(np.int64) * 131
+            + np.floor(y / 3.3).astype(np.int64) * 17,
+            4096,
+        )
         wi = np.flatnonzero(bld)[win]
         material[wi] = WINDOW
         albedo[wi] = (0.035, 0.04, 0.05)

@@ -1,0 +1,122 @@
+"""What every stage's flow does first, and the task runners of the fan-out stages.
+
+:func:`parse_stage_args` reads a stage's command line (``--params`` plus the stage's own arguments) and validates the
+params file before any work starts: a bad or incomplete params file ends the command with exit code 2 and one line
+naming ``file: dotted.key`` (what ``dvc repro`` shows). :func:`open_stage` is the first line of a flow body: the
+params, the project's folders and the run logger.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from prefect import get_run_logger
+from prefect.futures import PrefectFuture, as_completed
+from prefect.task_runners import ProcessPoolTaskRunner, TaskRunner, ThreadPoolTaskRunner
+from tqdm.auto import tqdm
+
+from components.core.config import PROJECT_ROOT, ConfigError, Params, RunnerConfig, load_params
+from components.core.paths import ProjectPaths
+
+__all__ = [
+    "Stage",
+    "open_stage",
+    "parse_stage_args",
+    "use_all_cores",
+    "task_runner",
+    "share_api_with_workers",
+    "wait_with_progress",
+]
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A running stage: its validated params, the params file, the project's folders and the run logger."""
+
+    params: Params
+    params_file: Path
+    paths: ProjectPaths
+    logger: logging.Logger | logging.LoggerAdapter
+
+
+def open_stage(params_path: str | Path) -> Stage:
+    """Load the params file (``ConfigError`` naming the key when it is bad) inside a flow run."""
+    params_file = Path(params_path)
+    params = load_params(params_file)
+    return Stage(params, params_file, ProjectPaths.of(params, params_file), get_run_logger())
+
+
+def parse_stage_args(
+    description: str, argv: Sequence[str] | None = None, arguments: Sequence[tuple[Sequence[str], dict[str, Any]]] = ()
+) -> tuple[argparse.Namespace, Params]:
+    """Parse ``--params PATH`` (default: the project's params.yaml) and the stage's ``arguments`` (``(flags, kwargs)``
+    pairs for ``add_argument``), and validate the params file: exit 2 with one line naming the bad key otherwise."""
+    parser = argparse.ArgumentParser(description=description)
+    for flags, kwargs in arguments:
+        parser.add_argument(*flags, **kwargs)
+    parser.add_argument(
+        "--params", type=Path, default=PROJECT_ROOT / "params.yaml", help="params file (default: params.yaml)"
+    )
+    args = parser.parse_args(argv)
+    try:
+        params = load_params(args.params)
+    except ConfigError as e:
+        parser.exit(2, f"{parser.prog}: {'; '.join(line.strip() for line in str(e).splitlines())}\n")
+    return args, params
+
+
+def use_all_cores() -> None:
+    """Let torch use every core (a stage that trains or exports runs alone)."""
+    import torch
+
+    torch.set_num_threads(max(1, os.cpu_count() or 1))
+
+
+def task_runner(cfg: RunnerConfig) -> TaskRunner:
+    """The Prefect task runner ``cfg`` names: threads, processes, or Dask (prefect-dask)."""
+    if cfg.kind == "threads":
+        return ThreadPoolTaskRunner(max_workers=cfg.workers)
+    if cfg.kind == "processes":
+        return ProcessPoolTaskRunner(max_workers=cfg.workers)
+    if cfg.kind == "dask":
+        from prefect_dask import DaskTaskRunner
+
+        if cfg.dask_address:  # an existing cluster: its workers must reach the same Prefect server (PREFECT_API_URL)
+            return DaskTaskRunner(address=cfg.dask_address)
+        # a local cluster of threads: the cluster starts before the flow body, so worker processes could not be
+        # pointed at the flow's temporary Prefect server and would each start their own
+        return DaskTaskRunner(cluster_kwargs={"n_workers": 1, "threads_per_worker": cfg.workers, "processes": False})
+    raise ValueError(f"unknown task runner kind {cfg.kind!r}; known: threads, processes, dask")
+
+
+def share_api_with_workers() -> str:
+    """Point worker processes spawned from here at this flow's Prefect API.
+
+    Without a configured server, Prefect starts a temporary one per process: each worker of a
+    process pool (or a local Dask cluster) would start its own (seconds each). Exporting the
+    running API's URL before the workers are spawned makes them report to the flow's server.
+    Call it inside a flow, before submitting tasks. Returns the URL.
+    """
+    from prefect.client.orchestration import get_client
+
+    if not os.environ.get("PREFECT_API_URL"):
+        with get_client(sync_client=True) as client:
+            os.environ["PREFECT_API_URL"] = str(client.api_url)
+    return os.environ["PREFECT_API_URL"]
+
+
+def wait_with_progress(futures: Iterable[PrefectFuture], desc: str, total: int | None = None) -> list:
+    """Wait for ``futures`` showing a progress bar; results in completion order. Raises the first failure."""
+    futures = list(futures)
+    results = []
+    with tqdm(total=total if total is not None else len(futures), desc=desc, unit="task") as bar:
+        for fut in as_completed(futures):
+            results.append(fut.result())
+            bar.update(1)
+    return results

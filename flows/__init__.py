@@ -3,6 +3,8 @@
 Importing this package points Prefect at project-local state (``.prefect/`` at the project root)
 unless the user configured ``PREFECT_HOME`` or a server (``PREFECT_API_URL``), and turns off
 telemetry (the machines are offline). It must run before ``prefect`` is imported.
+
+Imported by every stage.
 """
 
 import os

@@ -1,7 +1,7 @@
 """Every MLflow call of the pipeline: runs, params, metrics, artifacts, the Model Registry and its aliases.
 
-The flows and the CLI never call ``mlflow`` themselves; they use this module, so that what is tracked, and how runs
-and registered models are named, is written in one place:
+The flows never call ``mlflow`` themselves (nor does the CLI, which tracks nothing); they use this module, so that
+what is tracked, and how runs and registered models are named, is written in one place:
 
 - one experiment (``train.experiment``); a parent run per grid (:func:`grid_key`: the data and every training
   setting) and a child run per model, tagged ``pidc.model``, found or created across processes (:func:`model_run`);
@@ -11,6 +11,8 @@ and registered models are named, is written in one place:
   alias ``champion`` (:func:`set_champion_alias`).
 
 The tracking store is ``MLFLOW_TRACKING_URI`` or ``sqlite:///<project>/mlflow.db``.
+
+Used by the ``train``, ``variant``, ``export``, ``export-variant`` and ``evaluate`` stages.
 """
 
 from __future__ import annotations

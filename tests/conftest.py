@@ -168,20 +168,16 @@ def tiny_checkpoint():
     return _tiny_checkpoint
 
 
+#: the smallest flow the tests train (params.yaml's ``train.flow`` section)
+TINY_FLOW = {"transforms": 1, "hidden_features": [16], "bins": 4, "passes": 2, "ensemble": 1, "standardize": True}
+
 FAST_TRAINING = {
     "train.epochs": 2,
     "train.embedding_epochs": 1,
     "train.sizes": [8, 24],
     "train.variants": {"ensemble": {"backbone": "cues", "size": 24, "balance": 0.0, "ensemble": 2}},
     "backbones": {"names": ["cues", "cnn"], "pretrained_dir": None, "batch_size": 256},
-    "train.flow": {
-        "transforms": 1,
-        "hidden_features": [16],
-        "bins": 4,
-        "passes": 2,
-        "ensemble": 1,
-        "standardize": True,
-    },
+    "train.flow": TINY_FLOW,
 }
 
 

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import re
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -122,3 +124,31 @@ def test_dvc_repro_pipeline_in_a_temp_git_repo(micro_project, tmp_path, prefect_
     assert new["content_hash"] != manifest["content_hash"] and new["seed"] == 7
     theta = dataset.open_split(repo / "data", "train").theta
     assert np.isfinite(theta).all()
+
+
+@pytest.mark.slow
+def test_dvc_status_follows_the_code_and_a_missing_key_fails_repro(micro_project, tmp_path, prefect_server):
+    """Editing a module makes exactly the stages that import it stale (a real `dvc status`); a params file with a
+    key removed fails `dvc repro` with one line naming the key."""
+    import yaml
+
+    from tests.test_dvc_deps import closure
+
+    repo = copy_project(micro_project, tmp_path / "repo")
+    dvc = [sys.executable, "-m", "dvc"]
+    touched = "components/evaluate/ppc.py"
+    with open(repo / touched, "a") as f:
+        f.write("\n# touched by the test\n")
+    r = run_in(dvc + ["status", "--json"], repo)
+    assert r.returncode == 0, r.stdout + r.stderr
+    stale = {name for name, changes in json.loads(r.stdout).items() if any("changed deps" in c for c in changes)}
+    lock = yaml.safe_load((repo / "dvc.lock").read_text())["stages"]
+    modules = {name: re.search(r"python -m (flows\.\w+)", entry["cmd"]).group(1) for name, entry in lock.items()}
+    expected = {name for name, module in modules.items() if (Path(__file__).parents[1] / touched) in closure(module)}
+    assert expected == {"evaluate"} and stale == expected, (stale, expected)
+
+    params = yaml.safe_load((repo / "params.yaml").read_text())
+    del params["evaluate"]["samples"]
+    (repo / "params.yaml").write_text(yaml.safe_dump(params))
+    r = run_in(dvc + ["repro", "evaluate"], repo, env={"PREFECT_API_URL": prefect_server})
+    assert r.returncode != 0 and "evaluate.samples: missing key" in r.stdout + r.stderr, r.stdout + r.stderr

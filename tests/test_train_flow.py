@@ -10,20 +10,13 @@ import pytest
 import torch
 
 from components.posterior.store import load_npe
-from tests.conftest import write_params
+from tests.conftest import TINY_FLOW, write_params
 
 FAST = {
     "train.epochs": 3,
     "train.embedding_epochs": 2,
     "train.patience": 5,
-    "train.flow": {
-        "transforms": 1,
-        "hidden_features": [16],
-        "bins": 4,
-        "passes": 2,
-        "ensemble": 1,
-        "standardize": True,
-    },
+    "train.flow": TINY_FLOW,
 }
 
 

@@ -4,6 +4,8 @@
 - :mod:`~components.cli.models`: ``characterize``, ``domain``, ``relate`` over registry models.
 - :mod:`~components.cli.drawsfile`: posterior draws written as CSV or Parquet, atomically.
 - :mod:`~components.cli.errors`: ``CLIError``, a one-line error with exit code 2.
+
+Used by the ``pidc`` CLI only: no pipeline stage imports this package.
 """
 
 __all__ = ["main", "models", "drawsfile", "errors"]

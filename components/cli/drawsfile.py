@@ -4,6 +4,8 @@ One row per draw: ``image`` (a label, e.g. the file path), ``draw`` (0-based ind
 parameters in physical units. ``.csv`` is written with the standard library; ``.parquet`` needs pyarrow (checked when
 the writer is created, before any work). The file appears only on :meth:`DrawsWriter.close` (temporary file + atomic
 rename, :func:`components.core.files.atomic_path`), so an interrupted run leaves no partial table.
+
+Used by the ``pidc`` CLI only (``characterize --samples-out``).
 """
 
 from __future__ import annotations

@@ -1,4 +1,7 @@
-"""The ``pidc`` command line: thin over :mod:`components`, heavy imports only inside commands."""
+"""The ``pidc`` command line: thin over :mod:`components`, heavy imports only inside commands.
+
+The ``pidc`` CLI's entry point (``[project.scripts]`` in ``pyproject.toml``); no pipeline stage imports it.
+"""
 
 from __future__ import annotations
 

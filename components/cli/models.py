@@ -7,8 +7,11 @@
 * relate — a target folder against source folders: mixture weights λ̂, gaps, and the out-of-ODD verdict with a
   threshold calibrated on in-ODD targets resampled from the sources (Task III).
 
-Models come from the registry (:func:`components.export.lookup.load_registered`: ``champion``, a model id, or an exported
-folder). Unreadable images are reported one line each on stderr and skipped. Heavy imports happen inside commands.
+Models come from the registry (:func:`components.export.lookup.load_registered`: ``champion``, a model id, or an
+exported folder). Unreadable images are reported one line each on stderr and skipped. Heavy imports happen inside
+commands.
+
+Used by the ``pidc`` CLI only.
 """
 
 from __future__ import annotations

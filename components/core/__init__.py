@@ -7,6 +7,8 @@
 - :mod:`~components.core.seeding`: ``derive_seed``/``rng``: every random draw descends from ``seed``.
 - :mod:`~components.core.files`: atomic writes and file hashes.
 - :mod:`~components.core.images`: reading users' image files (the CLI).
+
+Used by every stage and the ``pidc`` CLI (``paths`` by the stages only, ``images`` by the CLI only).
 """
 
 __all__ = ["weather", "config", "paths", "seeding", "files", "images"]

@@ -9,6 +9,8 @@ is ``params.yaml`` as it is.
 
 Sections are owned by the components that use them; each is a small pydantic model here so that one
 file shows every setting and its meaning.
+
+Used by every stage and the ``pidc`` CLI (``pidc config check``).
 """
 
 from __future__ import annotations

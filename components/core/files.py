@@ -5,6 +5,8 @@ content is written under a temporary name beside the target and renamed over it 
 and Windows within one file system), so a reader sees either the old or the new content, whole, and an error or a
 killed process leaves the target as it was. Temporary names start with ``.<target name>.`` and end with ``.tmp``, so
 the clean-ups that remove ``.<stem>…`` leftovers next to their files still find them.
+
+Used by every stage and the ``pidc`` CLI.
 """
 
 from __future__ import annotations

@@ -7,6 +7,8 @@ not an image, unsupported pixel format) raise :class:`ImageError`, whose one-lin
 reason. :func:`list_images` expands folders (image extensions only, natural sort order so ``frame_2`` comes before
 ``frame_10``), :func:`iter_images` reads a list and keeps going past bad files, and :func:`group_by_size` stacks
 images of equal size into the ``(n, H, W, 3)`` batches a backbone takes (it resizes each batch to its input size).
+
+Used by the ``pidc`` CLI only (``characterize``, ``domain``, ``relate``); no stage reads users' images.
 """
 
 from __future__ import annotations

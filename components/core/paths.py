@@ -1,7 +1,10 @@
 """Where a project's pipeline state lives: data, feature caches, models, the exported registry and the reports.
 
-Every stage (``flows/``) and the CLI find their folders here, relative to the params file's folder (the project
-root), so no flow has to import another to learn where the previous stage wrote.
+Every stage (``flows/``) finds its folders here, relative to the params file's folder (the project root), so no flow
+has to import another to learn where the previous stage wrote.
+
+Used by every stage (through :mod:`flows.stage`; ``task3`` also in :mod:`components.domains.task3`); the ``pidc`` CLI
+does not import it (it takes its folders from the command line).
 """
 
 from __future__ import annotations

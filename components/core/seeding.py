@@ -3,6 +3,8 @@
 A stream is named by the root seed and a path of keys (strings or non-negative integers), e.g.
 ``rng(seed, "data", "train", 17)``; the same path always gives the same stream and different paths
 give independent streams (``numpy.random.SeedSequence`` entropy mixing). No global RNG state.
+
+Used by every stage and the ``pidc`` CLI.
 """
 
 from __future__ import annotations

@@ -10,6 +10,8 @@ the torch-free runtime. Arrays of θ have shape ``(..., 6)`` in physical units (
 The bijection :func:`to_unbounded` / :func:`to_physical` maps the prior's box onto ℝ⁶ by a scaled
 logit per parameter, so that a flow living in ℝ⁶ puts no mass outside the physical ranges; its
 log-Jacobian :func:`log_abs_det_jacobian` converts densities between the two spaces.
+
+Used by every stage and the ``pidc`` CLI.
 """
 
 from __future__ import annotations

@@ -6,6 +6,8 @@
 - :mod:`~components.domains.scenarios`: known weather distributions (Gaussian mixtures, sub-boxes).
 - :mod:`~components.domains.sweep`: the noise sweep over η (``NoiseSweep``, ``summarize_sweep``).
 - :mod:`~components.domains.task2`, :mod:`~components.domains.task3`: what the ``task2`` and ``task3`` stages run.
+
+Used by the ``task2`` and ``task3`` stages and the ``pidc`` CLI (``domain``, ``relate``).
 """
 
 __all__ = ["absolute", "relative", "scenarios", "sweep", "task2", "task3"]

@@ -12,6 +12,8 @@ decaying weights give the linear temporal filter the paper mentions (:class:`Exp
 
 Everything here is numpy; the estimator is anything that satisfies :class:`Posterior` (the torch NPE wrapper or the
 torch-free ONNX runtime).
+
+Used by the ``task2`` and ``task3`` stages and the ``pidc`` CLI (``domain``, ``relate``).
 """
 
 from __future__ import annotations

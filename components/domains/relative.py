@@ -17,6 +17,8 @@ The Operational Design Domain is the convex hull of the sources; a large δ(λ̂
 :class:`OddDetector` turns a gap statistic (δ, or the scale-free :attr:`Relation.relative_gap`) into a decision with
 a threshold calibrated on in-ODD gaps for a chosen false-alarm rate; :func:`calibrate_on_sources` builds those gaps
 from the sources themselves (targets of random composition held out of the source bags) for the relative gap.
+
+Used by the ``task3`` stage and the ``pidc`` CLI (``relate``).
 """
 
 from __future__ import annotations

@@ -6,6 +6,8 @@
   split being uniform on the prior, a bag's weather is uniform on its sub-box).
 
 θ in physical units, in :data:`components.core.weather.PREDICTED` order.
+
+Used by the ``task2`` and ``task3`` stages.
 """
 
 from __future__ import annotations

@@ -15,15 +15,17 @@ again; it sees new images of the same weather. With ``fresh_pools`` (held-out ob
 weather, e.g. other test images in the same sub-box), a fresh target replaces each bₖ by a random subset of its
 pool of the same size: at η = 0 it is in the ODD but not an exact mixture, so δ at η = 0 measures the sampling
 noise of a bag, the decision threshold is calibrated on realistic in-ODD targets, and the ROC curves say how much
-out-of-ODD weather can be told from that noise. Each experiment relates the target to the sources (:func:`components.domains.relative.relate`, n_W points):
-λ̂, the gap δ(λ̂), its relative version, δ for a λ drawn at random on the simplex (the chance baseline) and
-d_E = ‖λ̂ − λ‖₂. :meth:`NoiseSweep.calibrate` calibrates the out-of-ODD decision on in-ODD targets (η = 0) of its own
-seeds; :func:`summarize_sweep` gives the per-η medians, detection rates at the calibrated threshold and the ROC AUC of
-η against η = 0.
+out-of-ODD weather can be told from that noise. Each experiment relates the target to the sources
+(:func:`components.domains.relative.relate`, n_W points): λ̂, the gap δ(λ̂), its relative version, δ for a λ drawn at
+random on the simplex (the chance baseline) and d_E = ‖λ̂ − λ‖₂. :meth:`NoiseSweep.calibrate` calibrates the
+out-of-ODD decision on in-ODD targets (η = 0) of its own seeds; :func:`summarize_sweep` gives the per-η medians,
+detection rates at the calibrated threshold and the ROC AUC of η against η = 0.
 
 Everything works on the posterior's *context* (the embedding of each image computed once):
-``posterior.on_context()`` and ``contexts = posterior.context(x)`` (:class:`components.export.runtime.OnnxPosterior`), so
-the sweep's cost is the flow's density evaluations only.
+``posterior.on_context()`` and ``contexts = posterior.context(x)`` (:class:`components.export.runtime.OnnxPosterior`),
+so the sweep's cost is the flow's density evaluations only.
+
+Used by the ``task3`` stage.
 """
 
 from __future__ import annotations

@@ -6,6 +6,9 @@
 - :mod:`~components.evaluate.task1`: per-model draws, metrics and PPCs of the stage.
 - :mod:`~components.evaluate.champion`: the rule that names the champion.
 - :mod:`~components.evaluate.summary`: per-parameter medians and highest-density intervals of draws (the CLI).
+
+Used by the ``evaluate`` stage; ``diagnostics`` also by the ``train``, ``variant``, ``task2`` and ``task3`` stages and
+the ``pidc`` CLI (through the plots and the sweep), ``summary`` by the CLI only.
 """
 
 __all__ = ["diagnostics", "ppc", "task1", "champion", "summary"]

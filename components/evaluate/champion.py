@@ -1,6 +1,9 @@
 """The champion: the model the evaluation recommends (the ``evaluate`` stage, then Tasks II and III and the CLI).
 
 The rule today: the lowest Task I value of ``export.champion_metric`` (lower is better), ties broken by model id.
+
+Used by the ``evaluate`` stage only; ``task2``, ``task3`` and the CLI read its pick from ``reports/task1/champion.json``
+(:mod:`components.export.lookup`).
 """
 
 from __future__ import annotations

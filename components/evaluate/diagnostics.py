@@ -14,6 +14,9 @@ arrays or CPU tensors; results are numpy float64.
   underconfident (conservative, too wide): c(l) > l;
 * superiority of the ground truth π(i) = P̂(p̂(W | i) ≤ p̂(w* | i)): the share of drawn weathers no more
   credible than w* (the paper's Fig. "superiority"); π ≈ 1 − α, uniform on [0, 1] for the exact posterior.
+
+Used by the ``evaluate``, ``task2`` and ``task3`` stages, and through :mod:`components.plots` by the ``train`` and
+``variant`` stages and the ``pidc`` CLI.
 """
 
 from __future__ import annotations

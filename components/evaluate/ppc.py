@@ -10,6 +10,8 @@ to the observation. The PPC score
 is 0 when posterior draws reproduce the image no better than prior draws, and 1 when they reproduce
 it exactly; negative when they are worse than the prior. The distance d is the mean absolute
 difference of the images in [0, 1] (per pixel and channel).
+
+Used by the ``evaluate`` stage.
 """
 
 from __future__ import annotations

@@ -4,6 +4,8 @@ The HDI of a 1-D marginal from m draws is the shortest interval holding ⌈mass�
 interval): sort the draws, slide a window of that many, keep the narrowest. It is the 68.27 % highest-density
 *interval* of each marginal by default (the paper's 1σ-equivalent level); for a multimodal marginal it is the
 shortest single interval, which may span a gap between modes. All values are in the physical units of θ.
+
+Used by the ``pidc`` CLI only (``characterize``, ``domain``).
 """
 
 from __future__ import annotations

@@ -6,6 +6,9 @@
   ``context``/``on_context``) on onnxruntime.
 - :mod:`~components.export.lookup`: models of the ``registry/`` folder by id or ``champion``, paired with their
   backbone (``load_registered``, ``RegisteredPosterior``, ``CHAMPION_POINTER``).
+
+Used by the ``export`` and ``export-variant`` stages (``onnx``), and by the ``evaluate``, ``task2`` and ``task3`` stages
+and the ``pidc`` CLI (``runtime``, ``lookup``).
 """
 
 __all__ = ["onnx", "runtime", "lookup"]

@@ -1,10 +1,12 @@
 """The local model registry ``registry/``: one exported folder per model, and the champion pointer.
 
-``registry/<model id>/`` holds what :func:`components.export.onnx.export_posterior` writes (ONNX graphs + ``card.json``).
-The champion pointer ``reports/task1/champion.json`` (beside ``registry/`` in the project; written by the evaluate
-stage) names the model the Task I evaluation found best calibrated. A model is used on images
-through its backbone (named in the card): :class:`RegisteredPosterior` pairs the torch-free
+``registry/<model id>/`` holds what :func:`components.export.onnx.export_posterior` writes (ONNX graphs +
+``card.json``). The champion pointer ``reports/task1/champion.json`` (beside ``registry/`` in the project; written by
+the evaluate stage) names the model the Task I evaluation found best calibrated. A model is used on images through its
+backbone (named in the card): :class:`RegisteredPosterior` pairs the torch-free
 :class:`~components.export.runtime.OnnxPosterior` with the backbone that turns uint8 images into the posterior's input.
+
+Used by the ``evaluate``, ``task2`` and ``task3`` stages and the ``pidc`` CLI.
 """
 
 from __future__ import annotations

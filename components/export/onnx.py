@@ -17,11 +17,13 @@ The exported folder holds three kinds of graph, all float32 with a dynamic batch
     ``(x (B, *input_shape), θ (B, d)) → log_prob (B,)``: the whole log-density in physical units in one graph, for
     consumers that run one ONNX model (the MLflow ONNX flavor); the runtime does not use it.
 
-Apart from ``density.onnx``, the bijection to physical units (θ = scaled sigmoid of z, :mod:`components.core.weather`) is
-not in the graphs: the runtime applies it in float64 numpy. ``card.json`` describes everything the runtime needs (θ names, units, box,
-bijection, input spec, the graphs' file names and sha256) merged with the caller's card (backbone, training size,
-metrics, versions). The folder is written atomically: a temporary sibling folder, then a rename
-(:func:`components.core.files.atomic_folder`).
+Apart from ``density.onnx``, the bijection to physical units (θ = scaled sigmoid of z, :mod:`components.core.weather`)
+is not in the graphs: the runtime applies it in float64 numpy. ``card.json`` describes everything the runtime needs
+(θ names, units, box, bijection, input spec, the graphs' file names and sha256) merged with the caller's card
+(backbone, training size, metrics, versions). The folder is written atomically: a temporary sibling folder, then a
+rename (:func:`components.core.files.atomic_folder`).
+
+Used by the ``export`` and ``export-variant`` stages.
 """
 
 from __future__ import annotations

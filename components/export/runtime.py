@@ -14,6 +14,8 @@ of each draw is chosen uniformly by the same generator. θ = :func:`components.c
 leaves the box.
 
 :class:`OnnxPosterior` satisfies :class:`components.domains.absolute.Posterior` (numpy in, numpy out).
+
+Used by the ``evaluate``, ``task2`` and ``task3`` stages and the ``pidc`` CLI.
 """
 
 from __future__ import annotations

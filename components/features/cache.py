@@ -11,6 +11,8 @@ flow (``trainable``) it holds the backbone's model input at its ``input_size`` (
 ``(k, h, w, 3)``), so training never re-reads and re-sizes the full images. A cached shard is reused
 only when its receipt names the current dataset shard (sha256) and the current backbone
 fingerprint; otherwise it is recomputed, never mixed with new data.
+
+Used by the ``features``, ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and the ``pidc`` CLI.
 """
 
 from __future__ import annotations

@@ -9,6 +9,8 @@ function returns a :class:`matplotlib.figure.Figure`, written with :func:`save_f
 * Task III: :func:`boxplots_by_level`, :func:`roc_curves`;
 * training: :func:`loss_curves`;
 * highest-density regions from samples: :func:`hdr_log_threshold` and its 2-D grid counterpart.
+
+Used by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and the ``pidc`` CLI.
 """
 
 from components.plots.calibration import coverage_plot, model_styles, superiority_boxplot

@@ -5,6 +5,9 @@ The HDR of a density q at credible level α is R_α = {θ : q(θ) ≥ t_α} with
 of the samples has log q ≥ t_α. For a 2-D marginal, whose density is unknown, the density is estimated on a
 grid (histogram, lightly smoothed) and the cells are ordered by decreasing density; the threshold is the
 density of the cell at which the accumulated mass reaches α ("mass-ordered thresholds").
+
+Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+the ``pidc`` CLI.
 """
 
 from __future__ import annotations

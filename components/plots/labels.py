@@ -1,4 +1,8 @@
-"""Axis labels of the weather parameters, with their physical units (from :mod:`components.core.weather`)."""
+"""Axis labels of the weather parameters, with their physical units (from :mod:`components.core.weather`).
+
+Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+the ``pidc`` CLI.
+"""
 
 from __future__ import annotations
 

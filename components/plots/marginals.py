@@ -1,4 +1,8 @@
-"""Paper, Task I, 1st analysis: the 6 marginal histograms of a predicted weather distribution, HDR highlighted."""
+"""Paper, Task I, 1st analysis: the 6 marginal histograms of a predicted weather distribution, HDR highlighted.
+
+Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+the ``pidc`` CLI.
+"""
 
 from __future__ import annotations
 

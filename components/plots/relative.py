@@ -1,5 +1,9 @@
 """Task III figures: box plots of d_E and of the mean square gap δ against the noise level η, and ROC curves
-of the out-of-ODD decision "δ above a threshold"."""
+of the out-of-ODD decision "δ above a threshold".
+
+Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+the ``pidc`` CLI.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,8 @@
-"""Training curves of a posterior model (an MLflow artifact of every training run)."""
+"""Training curves of a posterior model (an MLflow artifact of every training run).
+
+Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+the ``pidc`` CLI.
+"""
 
 from __future__ import annotations
 

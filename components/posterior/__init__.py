@@ -6,6 +6,9 @@
 * :mod:`~components.posterior.loss` — the NPE loss (physical units) and balanced NPE's penalty;
 * :mod:`~components.posterior.checkpoint` — atomic checkpoint files;
 * :mod:`~components.posterior.train` — :func:`train` with :class:`TrainingConfig`, returning a :class:`History`.
+
+Used by the ``train``, ``variant``, ``export`` and ``export-variant`` stages (``metrics`` and ``settings`` by ``train``
+and ``variant`` only).
 """
 
 from components.posterior.bijection import IntervalBox, ScaledLogit, as_interval_box

@@ -1,8 +1,9 @@
 """The scaled-logit bijection between a parameter box and ℝᵈ, in torch.
 
 This is the torch twin of :func:`components.core.weather.to_unbounded`, :func:`~components.core.weather.to_physical`
-and :func:`~components.core.weather.log_abs_det_jacobian`: the same formulas, the same :data:`~components.core.weather.EDGE_EPS`,
-so that in float64 both give the same numbers (to ~1e-12). Per parameter ``i``:
+and :func:`~components.core.weather.log_abs_det_jacobian`: the same formulas, the same
+:data:`~components.core.weather.EDGE_EPS`, so that in float64 both give the same numbers (to ~1e-12). Per parameter
+``i``:
 
     u = (θ − low) / (high − low), clipped to [ε, 1 − ε]        (ε = EDGE_EPS)
     z = logit(u) = log u − log(1 − u)
@@ -13,6 +14,8 @@ so that densities convert as ``log q_θ(θ) = log q_z(z) − log|det ∂θ/∂z|
 
 :class:`components.core.weather.Box` serves boxes of any dimension ``d`` (θ ∈ ℝᵈ): the 6-D weather prior, and the
 1–2-D toys the posterior is tested on (``IntervalBox`` is the same class).
+
+Used by the ``train``, ``variant``, ``export`` and ``export-variant`` stages.
 """
 
 from __future__ import annotations

@@ -20,6 +20,9 @@ vs 0.10 nat). pidc uses the unbiased product of the means over the two halves of
 is the squared violation).
 
 For an ensemble (K flows), both terms are averaged over the members (each member is its own estimator).
+
+Used by the ``train`` and ``variant`` stages; the ``export`` and ``export-variant`` stages import it only through
+:mod:`components.posterior`.
 """
 
 from __future__ import annotations

@@ -3,6 +3,8 @@
 :class:`~components.posterior.model.FlowConfig` and :class:`~components.posterior.train.TrainingConfig` keep defaults
 for direct library use (benchmarks, tests); the pipeline depends on none of them: every field is set here from
 ``params.yaml`` (a field added to either class without a setting here is an error, not a silent default).
+
+Used by the ``train`` and ``variant`` stages.
 """
 
 from __future__ import annotations

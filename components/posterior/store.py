@@ -5,6 +5,8 @@ the backbone's name and options (for a backbone trained jointly with the flow, i
 trained weights come from the state dict), the context size, one input's shape, the flow's
 hyper-parameters, the prior box and the θ names and units. ``load_npe`` refuses a file whose format
 it does not know.
+
+Used by the ``train``, ``variant``, ``export`` and ``export-variant`` stages.
 """
 
 from __future__ import annotations

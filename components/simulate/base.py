@@ -1,4 +1,7 @@
-"""The simulator protocol shared by the procedural renderer and the CARLA backend."""
+"""The simulator protocol shared by the procedural renderer and the CARLA backend.
+
+Used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the ``pidc`` CLI.
+"""
 
 from __future__ import annotations
 

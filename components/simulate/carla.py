@@ -18,6 +18,9 @@ The ``carla`` package is an optional extra (``pip install 'pidc[carla]'``); it i
 this module can be imported without it. Every spawned actor is destroyed and the server is returned to
 asynchronous mode on :meth:`CarlaSimulator.close`, on context-manager exit, before a new scene is built
 and when rendering fails.
+
+Imported by :func:`~components.simulate.base.make_simulator`, so used by the ``generate``, ``evaluate`` and ``task2``
+stages (with ``simulator.backend: carla``); the ``pidc`` CLI imports it too.
 """
 
 from __future__ import annotations

@@ -4,6 +4,8 @@ The other parameters stay at a pleasant base weather; the block of six rows repe
 seed. Each row starts with a label panel naming the parameter (``cv2.putText``) and each tile is
 captioned with the swept value, so a person can check at a glance that fog, rain, puddles, night,
 cloud cover and low sun look like what they are.
+
+Used by the ``generate`` stage and the ``pidc`` CLI (``render`` writes its PNG).
 """
 
 from __future__ import annotations

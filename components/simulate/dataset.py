@@ -15,6 +15,8 @@ The plan is a pure function of the params: split sizes, seed, prior box, images 
 azimuth of image ``i`` do not depend on the split's size (prefix property), so smaller training sets
 are nested prefixes of the train split. Image ``i`` is rendered in scene ``i // images_per_scene``
 (a map/spawn point under several weathers, as data are collected in CARLA).
+
+Used by every stage but ``export`` and ``export-variant``, and by the ``pidc`` CLI.
 """
 
 from __future__ import annotations

@@ -16,6 +16,8 @@ name         trainable dim    what it sees
 The first three are embedded (no download) and form the default profile; the pretrained ones load
 Hugging Face weights from a local folder or the hub cache and raise :class:`MissingWeightsError` at
 once when they are absent. See :class:`Backbone` for the common interface.
+
+Used by every stage but ``generate``, and by the ``pidc`` CLI.
 """
 
 from __future__ import annotations

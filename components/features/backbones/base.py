@@ -12,6 +12,8 @@ the backbone. A backbone is a :class:`torch.nn.Module` with
 - :meth:`extract` — images → features as a float32 numpy array, batched, under inference mode;
 - :meth:`fingerprint` — a hash of name, code version, configuration and weights, stored next to
   cached features to detect stale caches.
+
+Used by every stage but ``generate``, and by the ``pidc`` CLI.
 """
 
 from __future__ import annotations

@@ -22,6 +22,8 @@ Why. It is the learned end of the backbone comparison: the embedding is optimise
 loss, at the price of needing training data; comparing it with the frozen ``cues`` and ``tiny``
 across training sizes is the point of the 3×3 grid. Its initial weights are a deterministic
 function of ``seed`` (a stream of :mod:`components.core.seeding`), so the same seed gives the same network.
+
+Used by every stage but ``generate``, and by the ``pidc`` CLI.
 """
 
 from __future__ import annotations

@@ -40,6 +40,8 @@ Quantiles come from 256-bin histograms (resolution 1/256, like the 8-bit input).
 standardised: downstream code should z-score them with training-set statistics. The forward pass
 uses only ONNX-exportable operations (when written, ``torch.onnx.export`` with a dynamic batch
 and onnxruntime agreed with torch to 1e-6; not part of the test suite, the export takes ~20 s).
+
+Used by every stage but ``generate``, and by the ``pidc`` CLI.
 """
 
 from __future__ import annotations

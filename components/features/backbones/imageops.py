@@ -5,6 +5,8 @@ the simulators. This module validates such batches and converts their size by *a
 (each output pixel is the mean of the input pixels it covers, i.e. the light a larger camera pixel
 would integrate), so that a backbone expecting another resolution sees a physically faithful image.
 It is torch-free so that the ONNX runtime can reproduce a backbone's size conversion exactly.
+
+Used by every stage but ``generate``, and by the ``pidc`` CLI.
 """
 
 from __future__ import annotations

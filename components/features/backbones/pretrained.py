@@ -20,6 +20,8 @@ Weights are never downloaded implicitly and never replaced by random ones: see
 :mod:`components.features.backbones.weights` (explicit folder, ``pretrained_dir/<name>``, or the hub cache;
 :class:`~components.features.backbones.weights.MissingWeightsError` at once otherwise). ``transformers`` is
 imported only when a pretrained backbone is built.
+
+Used by every stage but ``generate``, and by the ``pidc`` CLI.
 """
 
 from __future__ import annotations

@@ -14,6 +14,8 @@ normalises legacy formats such as ``"size": 224``) and then executed on whole ba
 Resampling uses torch's anti-aliased kernels, which are PIL's (bicubic with a = −0.5), and rounds
 the resized image to 8 bits as PIL does, so the tensors match the reference processor to within
 one grey level before normalisation (checked in ``tests/test_pretrained.py``).
+
+Used by every stage but ``generate``, and by the ``pidc`` CLI.
 """
 
 from __future__ import annotations

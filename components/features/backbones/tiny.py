@@ -14,6 +14,8 @@ physics (just raw spatial appearance), unlike ``cnn`` it learns nothing and is f
 cached). Torralba et al. showed that 32×32 colour thumbnails keep most scene-level information;
 weather is a scene-level property, so an 8×8 lattice already carries sky colour, horizon haze,
 overall brightness and where it changes.
+
+Used by every stage but ``generate``, and by the ``pidc`` CLI.
 """
 
 from __future__ import annotations

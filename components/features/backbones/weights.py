@@ -12,6 +12,8 @@ A folder must hold ``config.json``, ``preprocessor_config.json`` and a weights f
 ``local_files_only`` except when ``download=True`` was asked for a hub repo id and ``HF_HUB_OFFLINE`` is
 not set. Whatever is missing raises :class:`MissingWeightsError` at once (a few file-system checks,
 never the hub's retry loop), naming the backbone, where it looked and how to provide the weights.
+
+Used by every stage but ``generate``, and by the ``pidc`` CLI.
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """The embedded procedural renderer: physically based front-camera images under CARLA weathers.
 
-Used by the ``generate`` stage (datasets), the ``evaluate`` stage (posterior predictive checks) and ``task2``
-(rendered bags). :class:`ProceduralSimulator` is the entry point; the other modules are its physics.
+Used by the ``generate`` stage (datasets), the ``evaluate`` stage (posterior predictive checks), ``task2``
+(rendered bags) and the ``pidc`` CLI (``render``). :class:`ProceduralSimulator` is the entry point; the other modules
+are its physics.
 """
 
 from components.simulate.procedural.renderer import ProceduralSimulator

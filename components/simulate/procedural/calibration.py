@@ -8,6 +8,9 @@ and enters the renderer's ``version`` string, so datasets record which calibrati
 Units: ``m`` metres, ``m^-1`` per metre, ``deg`` degrees, ``px@128`` pixels at 128-pixel image
 height (scaled with the resolution), ``rel`` relative radiance units (clear-noon sun = ``sun_irradiance``),
 ``EV`` exposure value (EV100), ``1`` dimensionless.
+
+Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the
+``pidc`` CLI (``render``).
 """
 
 from __future__ import annotations

@@ -6,6 +6,9 @@ with only a 2-EV window, night and overcast stay dark as in CARLA. The tonemap i
 fit (Narkowicz 2015); tonemap and gamma 2.2 are folded into one lookup table indexed by
 u = √(x/(1+x)) (fine steps in the shadows, bounded for any x ≥ 0). Glow around
 bright sources is part of the scene's emitter sprites (:mod:`.scene`), so there is no bloom pass.
+
+Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the
+``pidc`` CLI (``render``).
 """
 
 from __future__ import annotations

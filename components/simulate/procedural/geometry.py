@@ -4,6 +4,9 @@ Rays are cast once per scene (the geometry pass); everything here is weather-ind
 Pixel ``(i, j)`` (row, column) of an ``H × W`` image looks along the unit direction ``d[i, j]``
 (world frame of :mod:`components.simulate.procedural.layout`). Boxes and spheres are only tested inside their
 projected screen rectangle, so the cost scales with their screen area, not with their number.
+
+Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the
+``pidc`` CLI (``render``).
 """
 
 from __future__ import annotations

@@ -10,6 +10,9 @@ azimuth relative to the camera.
 
 Everything is drawn from one ``numpy.random.Generator`` (the scene's "layout" stream); weather
 never enters here.
+
+Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the
+``pidc`` CLI (``render``).
 """
 
 from __future__ import annotations

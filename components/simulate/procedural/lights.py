@@ -6,6 +6,9 @@ smoothly and are evaluated at half resolution. Lamp heads and vehicle lights are
 core sprites (emitted radiance), plus wider halo sprites that the renderer scales with the fog
 (scattering makes halos). Lit windows emit a warm radiance. Everything here is switched on by the
 renderer when the sun is below the horizon (CARLA's night mode).
+
+Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the
+``pidc`` CLI (``render``).
 """
 
 from __future__ import annotations

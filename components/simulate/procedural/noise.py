@@ -4,6 +4,9 @@ A texture is a periodic ``N × N`` float32 field with a power-law spectrum (ampl
 the fBm of ``simulator.md`` §2.3), standardized to zero mean and unit variance. Sampling returns
 approximately uniform quantiles (Gaussian CDF of the standardized value), so thresholding a sample
 at ``q`` covers a fraction ≈ ``q`` of the area: coverage follows cloudiness/deposits directly.
+
+Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the
+``pidc`` CLI (``render``).
 """
 
 from __future__ import annotations

@@ -7,6 +7,9 @@ positions (with a margin so that slanted streaks enter from outside); each carri
 quantile u. Lens drops are discs; every pixel stores the covering drop with the lowest priority
 (the first to appear as precipitation grows), the pixel it refracts (a flipped, shifted view) and
 a rim shading.
+
+Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the
+``pidc`` CLI (``render``).
 """
 
 from __future__ import annotations

@@ -10,6 +10,9 @@ sample points along every segment (no Python loop over drops), occluded by the d
 composited with the mean scene radiance (a drop refracts a wide field of view).
 Lens drops: pixels covered by an active drop (priority < fraction·p/100) show a blurred, flipped
 view of the scene through the drop.
+
+Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the
+``pidc`` CLI (``render``).
 """
 
 from __future__ import annotations

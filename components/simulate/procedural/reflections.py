@@ -8,6 +8,9 @@ radiance along the reflected direction, evaluated by the renderer with the direc
 Per road pixel this module stores the source index, the source of a jittered neighbour (rain
 ripples), the reflected path length (for fog), the Schlick Fresnel reflectance and the static
 puddle-noise quantile, sorted by that quantile so deposits select a prefix.
+
+Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the
+``pidc`` CLI (``render``).
 """
 
 from __future__ import annotations

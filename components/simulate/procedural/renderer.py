@@ -16,6 +16,9 @@ Image formation in linear radiance (relative units), then a camera (:mod:`.camer
 The scene (:mod:`.scene`) is built once per scene seed and cached (LRU); a render only thresholds
 and scales its fields, so the same (weather, scene_seed) gives a byte-identical image, and the
 geometry never changes with the weather.
+
+Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the
+``pidc`` CLI (``render``).
 """
 
 from __future__ import annotations

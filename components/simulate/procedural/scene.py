@@ -13,6 +13,9 @@ come from static noise. Weather only thresholds or scales these fields later (co
 numbers), so a scene re-renders identically under any weather.
 
 Per-pixel arrays are flattened in row-major order (``N = H·W``); float arrays are float32.
+
+Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the
+``pidc`` CLI (``render``).
 """
 
 from __future__ import annotations

@@ -2,11 +2,14 @@
 
 With s the unit vector to the sun (s_y > 0), an occluder point p casts its shadow on the ground at
 p − (p_y / s_y)·(s_x, s_z), so every box (crowns: their inscribed box) becomes a convex hexagon, its
-footprint swept from the base's to the top's shadow, on a ground raster (``cv2.fillConvexPoly``). Ground pixels look their cell up; objects standing on the ground look up
-the raster of tall occluders (buildings, poles, trees) at their own ground position; facades facing
-the road test the opposite side's building height profile along the ray to the sun. The result is
-the fraction of direct sun reaching each pixel (0 or 1); its visibility fades with clouds and fog
-because those dim the direct sun, not the shadow mask.
+footprint swept from the base's to the top's shadow, on a ground raster (``cv2.fillConvexPoly``). Ground pixels
+look their cell up; objects standing on the ground look up the raster of tall occluders (buildings, poles, trees)
+at their own ground position; facades facing the road test the opposite side's building height profile along the
+ray to the sun. The result is the fraction of direct sun reaching each pixel (0 or 1); its visibility fades with
+clouds and fog because those dim the direct sun, not the shadow mask.
+
+Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the
+``pidc`` CLI (``render``).
 """
 
 from __future__ import annotations

@@ -7,6 +7,9 @@ the Kasten–Young air mass; the sky is a zenith/horizon two-colour gradient key
 Henyey–Greenstein aerosol halo and glare around the sun; below the horizon it fades through a civil
 twilight band to a night floor. Clouds are a 2-D layer whose coverage α comes from a static noise
 quantile field thresholded by C (so coverage follows cloudiness, and the same clouds persist).
+
+Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the
+``pidc`` CLI (``render``).
 """
 
 from __future__ import annotations

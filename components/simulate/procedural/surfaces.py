@@ -4,6 +4,9 @@ Given the closest-hit buffers of :func:`.geometry.cast_objects` and the ground d
 every pixel a material id (:mod:`.layout`), a linear RGB albedo, a normal and a world position;
 ground points get their material from the road cross-section (lanes, markings, sidewalks, grass),
 building faces get a window grid whose lit windows (at night) are drawn from the "windows" stream.
+
+Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and ``task2`` (rendered bag) stages and the
+``pidc`` CLI (``render``).
 """
 
 from __future__ import annotations

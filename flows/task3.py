@@ -25,6 +25,7 @@ from components import plots
 from components.core.files import atomic_write_bytes
 from components.domains.sweep import NoiseSweep, experiments_by_eta
 from components.domains.task3 import build_sweep, task3_metrics
+from components.evaluate.diagnostics import roc_curve
 from flows.stage import open_stage, parse_stage_args
 
 
@@ -87,8 +88,7 @@ def task3(params_path: str = "params.yaml") -> dict:
     plots.save_figure(fig, plot_dir / "relative-gap.png")
     plots.save_figure(
         plots.roc_curves(
-            rel[0.0],
-            {k: v for k, v in rel.items() if k > 0},
+            {eta: roc_curve(rel[0.0], scores) for eta, scores in rel.items() if eta > 0},
             score_name="δ / mean b²",
             title=f"Out-of-ODD detection ({which})",
         ),

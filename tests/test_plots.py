@@ -14,6 +14,7 @@ from matplotlib.image import imread
 from components import plots
 from components.core.seeding import rng
 from components.core.weather import Box
+from components.evaluate.diagnostics import roc_curve
 
 LEVELS = (0.6827, 0.9545, 0.9973)
 LOG_2PI = math.log(2 * math.pi)
@@ -173,13 +174,13 @@ def test_roc_auc_is_the_mann_whitney_probability():
     g = rng(7, "test_plots", "roc")
     neg = np.round(g.normal(0, 1, 60), 1)  # rounding makes ties
     pos = np.round(g.normal(0.8, 1, 45), 1)
-    fpr, tpr, auc = plots.roc_curve(neg, pos)
+    fpr, tpr, auc = roc_curve(neg, pos)
     mw = np.mean(pos[:, None] > neg[None, :]) + 0.5 * np.mean(pos[:, None] == neg[None, :])
     assert abs(auc - mw) < 1e-12
     assert fpr[0] == tpr[0] == 0 and fpr[-1] == tpr[-1] == 1
     assert np.all(np.diff(fpr) >= 0) and np.all(np.diff(tpr) >= 0)
-    assert plots.roc_curve([0, 1, 2], [3, 4])[2] == 1.0
-    assert plots.roc_curve([1, 2, 3], [1, 2, 3])[2] == 0.5
+    assert roc_curve([0, 1, 2], [3, 4])[2] == 1.0
+    assert roc_curve([1, 2, 3], [1, 2, 3])[2] == 0.5
 
 
 def test_model_styles_colour_by_backbone_and_line_by_size():
@@ -243,7 +244,7 @@ def _figures():
         "by_level": lambda: plots.boxplots_by_level(
             {e: g.random(20) * (1 + e) for e in etas}, {e: g.random(20) + 2 for e in etas}, "η", "δ"
         ),
-        "roc": lambda: plots.roc_curves(g.random(30), {e: g.random(30) + e for e in etas[1:]}),
+        "roc": lambda: plots.roc_curves({e: roc_curve(g.random(30), g.random(30) + e) for e in etas[1:]}),
     }
 
 
@@ -336,7 +337,9 @@ _LP = -np.arange(500, dtype=float) / 100
         (lambda: plots.loss_curves({"val": [1.0, np.inf]}), ValueError, r"non-finite values \(only NaN is allowed\)"),
         (lambda: plots.corner_plot(_THETA, _LP[:10]), ValueError, r"log_prob must have shape \(500,\)"),
         (lambda: plots.boxplots_by_level({0.0: [1.0]}, {0.5: [1.0]}), ValueError, "baseline has level"),
-        (lambda: plots.roc_curves([0.1, np.inf], {0.5: [1.0]}), ValueError, "non-finite"),
+        (lambda: roc_curve([0.1, np.inf], [1.0]), ValueError, "non-finite"),
+        (lambda: plots.roc_curves({0.5: ([0.0, 1.0], [0.0], 0.5)}), ValueError, "one length"),
+        (lambda: plots.roc_curves({}), ValueError, "non-empty mapping"),
     ],
 )
 def test_bad_inputs_give_clear_errors(call, error, message):

@@ -189,9 +189,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.set_defaults(func=_cmd_config_check)
 
-    from components.cli.models import add_registry_commands
+    from components.cli.models import add_model_commands
 
-    add_registry_commands(sub)
+    add_model_commands(sub)
     return parser
 
 

@@ -31,7 +31,7 @@ import numpy as np
 from components.cli.errors import CLIError
 from components.core.seeding import derive_seed
 
-__all__ = ["add_registry_commands", "read_weights_csv"]
+__all__ = ["add_model_commands", "read_weights_csv"]
 
 #: Images read and turned into posterior inputs per batch (bounds memory for large folders).
 READ_BATCH = 64
@@ -429,7 +429,7 @@ def _model_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of every random draw (default 0)")
 
 
-def add_registry_commands(sub: Any) -> None:
+def add_model_commands(sub: Any) -> None:
     """Add ``characterize``, ``domain`` and ``relate`` to the ``pidc`` subcommands ``sub``."""
     p = sub.add_parser("characterize", help="per image: the posterior's median and 68.27 %% HDI per parameter")
     p.add_argument("images", nargs="+", metavar="IMAGE_OR_FOLDER", help="image files and/or folders of images")

@@ -19,7 +19,7 @@ from components.plots.corner import corner_compare, corner_plot, corner_ranges
 from components.plots.hdr import grid_density, grid_hdr_thresholds, hdr_log_threshold, in_hdr
 from components.plots.images import image_grid, ppc_sheet
 from components.plots.marginals import marginal_hdr_histograms, marginal_histograms
-from components.plots.relative import boxplots_by_level, roc_curve, roc_curves
+from components.plots.relative import boxplots_by_level, roc_curves
 from components.plots.training import best_epoch, loss_curves
 
 __all__ = [
@@ -42,6 +42,5 @@ __all__ = [
     "loss_curves",
     "best_epoch",
     "boxplots_by_level",
-    "roc_curve",
     "roc_curves",
 ]

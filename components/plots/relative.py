@@ -13,11 +13,10 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
-from components.evaluate.diagnostics import roc_curve
 from components.plots.canvas import new_figure
 from components.plots.checks import as_named_arrays
 
-__all__ = ["roc_curve", "boxplots_by_level", "roc_curves"]
+__all__ = ["boxplots_by_level", "roc_curves"]
 
 
 def _level_label(level: object) -> str:
@@ -76,28 +75,35 @@ def boxplots_by_level(
 
 
 def roc_curves(
-    negatives: object,
-    positives: Mapping[float, object],
+    curves: Mapping[float, tuple[object, object, float]],
     score_name: str = "δ",
     title: str = "Out-of-ODD detection",
 ) -> Figure:
     """ROC curves of "out of the ODD when the score ≥ s", one per level, AUC in the legend.
 
     Arguments:
-        negatives: ``(m,)`` scores of in-ODD targets (Task III: δ at η = 0).
-        positives: level → ``(p,)`` scores of out-of-ODD targets at that level (δ at each η > 0).
+        curves: level → ``(fpr, tpr, auc)`` of the out-of-ODD targets at that level against the in-ODD ones
+            (:func:`components.evaluate.diagnostics.roc_curve`; Task III: δ at each η > 0 against δ at η = 0).
         score_name: the score's symbol in the title.
     """
-    pos = as_named_arrays(positives, "positives")
+    if not isinstance(curves, Mapping) or not curves:
+        raise ValueError("curves must be a non-empty mapping level → (fpr, tpr, auc)")
+    checked = {}
+    for level, curve in curves.items():
+        if len(curve) != 3:
+            raise ValueError(f"curves[{level!r}] must be (fpr, tpr, auc), got {len(curve)} items")
+        fpr, tpr, auc = np.asarray(curve[0], float), np.asarray(curve[1], float), float(curve[2])
+        if fpr.shape != tpr.shape or fpr.ndim != 1 or not (np.isfinite(fpr).all() and np.isfinite(tpr).all()):
+            raise ValueError(f"curves[{level!r}]: fpr and tpr must be finite 1-D arrays of one length")
+        checked[level] = (fpr, tpr, auc)
     fig = new_figure(6.6, 6.0)
     ax = fig.add_subplot()
     ax.plot([0, 1], [0, 1], color="grey", linestyle=":", linewidth=1, label="chance (AUC 0.5)")
-    cmap_n = max(1, len(pos) - 1)
+    cmap_n = max(1, len(checked) - 1)
     from matplotlib import colormaps
 
     cmap = colormaps["viridis"]
-    for k, (level, scores) in enumerate(pos.items()):
-        fpr, tpr, auc = roc_curve(negatives, scores)
+    for k, (level, (fpr, tpr, auc)) in enumerate(checked.items()):
         ax.plot(
             fpr,
             tpr,

@@ -1,6 +1,6 @@
 """Image backbones ``f``: uint8 RGB images → feature vectors for the posterior flow ``p(θ | f(x))``.
 
-The registry names every backbone; :func:`get_backbone` builds one with its options:
+Every backbone has a name; :func:`get_backbone` builds one with its options:
 
 ============ ========= ====== ======================================================================
 name         trainable dim    what it sees
@@ -48,7 +48,7 @@ __all__ = [
     "ClipBackbone",
 ]
 
-_REGISTRY: dict[str, type[Backbone]] = {
+_BACKBONES: dict[str, type[Backbone]] = {
     cls.name: cls
     for cls in (CuesBackbone, TinyImagesBackbone, ConvBackbone, ResNet50Backbone, Dinov2Backbone, ClipBackbone)
 }
@@ -60,8 +60,8 @@ PRETRAINED: tuple[str, ...] = ("resnet50", "dinov2", "clip")
 
 
 def available() -> list[str]:
-    """The registered backbone names: embedded ones first, then the pretrained ones."""
-    return list(_REGISTRY)
+    """The backbone names: embedded ones first, then the pretrained ones."""
+    return list(_BACKBONES)
 
 
 def get_backbone(name: str, **options: Any) -> Backbone:
@@ -72,9 +72,9 @@ def get_backbone(name: str, **options: Any) -> Backbone:
     Raises ``ValueError`` for an unknown name (listing the known ones) or option, and
     :class:`MissingWeightsError` when a pretrained backbone's weights are not available locally.
     """
-    if not isinstance(name, str) or name not in _REGISTRY:
+    if not isinstance(name, str) or name not in _BACKBONES:
         raise ValueError(f"unknown backbone {name!r}; known backbones: {', '.join(available())}")
-    cls = _REGISTRY[name]
+    cls = _BACKBONES[name]
     accepted = [p for p in inspect.signature(cls.__init__).parameters if p != "self"]
     unknown = sorted(set(options) - set(accepted))
     if unknown:

@@ -67,7 +67,7 @@ def parse_stage_args(
     try:
         params = load_params(args.params)
     except ConfigError as e:
-        parser.exit(2, f"{parser.prog}: {'; '.join(line.strip() for line in str(e).splitlines())}\n")
+        parser.exit(2, f"{parser.prog}: {e.one_line()}\n")
     return args, params
 
 

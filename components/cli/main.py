@@ -127,7 +127,7 @@ def _cmd_config_check(args: argparse.Namespace) -> int:
     try:
         params = load_params(args.params, profile=args.profile)
     except ConfigError as e:
-        raise CLIError("; ".join(line.strip() for line in str(e).splitlines() if line.strip())) from None
+        raise CLIError(e.one_line()) from None
     overrides = (
         "" if params.profile == "default" else f" (overrides: {args.params.parent / 'profiles' / params.profile}.yaml)"
     )

@@ -36,6 +36,10 @@ DEFAULT_PROFILE = "default"
 class ConfigError(ValueError):
     """A params file is unreadable, has an unknown or missing key, or a bad value."""
 
+    def one_line(self) -> str:
+        """The message on one line (its lines joined by ``; ``), for a command's error output."""
+        return "; ".join(line.strip() for line in str(self).splitlines() if line.strip())
+
 
 class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)

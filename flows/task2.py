@@ -1,9 +1,11 @@
 """The ``task2`` stage: absolute characterization of a domain from a bag of images (paper, Task II).
 
-``python -m flows.task2 [--params params.yaml]``. Renders the bag (:func:`components.domains.task2.render_bag`),
-characterizes it with the registry model ``task2.model`` on onnxruntime (p̂_𝒟(θ) = Σᵢ wᵢ q(θ | xᵢ)), scores it
-against the true distribution (:func:`components.domains.task2.task2_metrics`) and writes
-``reports/task2/metrics.json`` and plots (the true distribution and the estimate side by side and overlaid, the bag).
+``python -m flows.task2 [--params params.yaml]``. Renders the bag (:func:`components.domains.task2.render_bag`: every
+parameter fixed but fog density and precipitation, the sun azimuth included), characterizes it with the registry
+model ``task2.model`` on onnxruntime (p̂_𝒟(θ) = Σᵢ wᵢ q(θ | xᵢ)), scores it against the true distribution and the
+prior (:func:`components.domains.task2.task2_metrics`) and writes ``reports/task2/metrics.json`` and plots (the true
+distribution and the estimate side by side and overlaid, the 1-D marginals of truth, estimate and prior overlaid,
+the bag); logs the metrics and plots to MLflow.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from components.domains import task2 as task2_
 from components.domains.absolute import Domain
 from components.export.lookup import load_registered
 from components.simulate.base import make_simulator
+from flows import tracking
 from flows.stage import open_stage, parse_stage_args
 
 
@@ -28,6 +31,14 @@ def render_bag(params_path: str) -> tuple[np.ndarray, np.ndarray]:
     """The bag: θ ``(n, 6)`` and the images ``(n, H, W, 3)`` rendered under them."""
     params = open_stage(params_path).params
     return task2_.render_bag(params, make_simulator(params.simulator))
+
+
+def _note(row: dict) -> str:
+    unit = "°" if row["unit"] == "deg" else row["unit"]
+    return (
+        f"W₁ to the truth {row['wasserstein_estimate']:.3g} {unit} (prior {row['wasserstein_prior']:.3g} {unit})\n"
+        f"HDR {row['hdr_width']:.3g} {unit} wide, holds {100 * row['true_mass_in_hdr']:.0f} % of the truth"
+    )
 
 
 @flow(name="task2", log_prints=True)
@@ -41,30 +52,59 @@ def task2(params_path: str = "params.yaml") -> dict:
     _, images = render_bag(str(stage.params_file))
     contexts = model.posterior.context(model.inputs(images))  # the embedding runs once per image
     domain = Domain(model.posterior.on_context(), contexts)  # equally weighted bag
-    metrics, estimate, truth = task2_.task2_metrics(domain, params, model.name)
+    metrics, estimate, truth, prior = task2_.task2_metrics(domain, params, model.name)
 
     labels = ("ground truth P_D(W)", "estimate P̂_D(W)")
-    plots.save_figure(
-        plots.corner_compare(truth, estimate, labels=labels, box=params.box),
-        out / "plots" / "corner-truth-vs-estimate.png",
-    )
-    plots.save_figure(
-        plots.corner_compare(truth, estimate, labels=labels, box=params.box, overlay=True),
-        out / "plots" / "corner-overlay.png",
-    )
+    figures = [
+        plots.save_figure(
+            plots.corner_compare(truth, estimate, labels=labels, box=params.box),
+            out / "plots" / "corner-truth-vs-estimate.png",
+        ),
+        plots.save_figure(
+            plots.corner_compare(truth, estimate, labels=labels, box=params.box, overlay=True),
+            out / "plots" / "corner-overlay.png",
+        ),
+        plots.save_figure(
+            plots.marginals_overlay(
+                truth,
+                estimate,
+                prior,
+                box=params.box,
+                notes=[_note(r) for r in metrics["parameters"].values()],
+                title=f"Task II ({model.name}): marginals of the truth, the estimate and the prior "
+                f"({100 * t.hdr_level:.0f} % HDR)",
+            ),
+            out / "plots" / "marginals.png",
+        ),
+    ]
     shown = min(48, t.images)
-    plots.save_figure(
-        plots.image_grid(images[:shown], ncols=8, title=f"Task II bag: {shown} of {t.images} images"),
-        out / "plots" / "bag.png",
+    figures.append(
+        plots.save_figure(
+            plots.image_grid(images[:shown], ncols=8, title=f"Task II bag: {shown} of {t.images} images"),
+            out / "plots" / "bag.png",
+        )
     )
     atomic_write_bytes(out / "metrics.json", json.dumps(metrics, indent=1).encode())
+    tracking.log_domain_task(
+        paths.root,
+        params.train.experiment,
+        "task2",
+        model.name,
+        tracking.flatten_numbers(metrics, "task2"),
+        {},
+        [out / "metrics.json", *figures],
+    )
+    energy = metrics["energy_distance_sq"]["all"]
     stage.logger.info(
-        "task2 (%s): %.1f %% of the true mass inside the estimate's %.0f %% HDR; energy distance %.3f (prior %.3f)",
+        "task2 (%s): %.1f %% of the true mass inside the estimate's %.0f %% HDR; energy distance² (U) %.4f, prior "
+        "%.4f, ratio %.3f (truth vs truth %.4f)",
         model.name,
         100 * metrics["true_mass_in_hdr"],
         100 * t.hdr_level,
-        metrics["energy_distance"],
-        metrics["energy_distance_prior"],
+        energy["estimate_to_truth"],
+        energy["prior_to_truth"],
+        energy["ratio"],
+        energy["truth_to_truth"],
     )
     return metrics
 

@@ -1,21 +1,24 @@
 """The ``task3`` stage: relative characterization and the out-of-ODD decision swept over the noise level η (Task III).
 
 ``python -m flows.task3 [--params params.yaml]``. Bags b0 (out of the ODD) and the sources b1, b2, … of test images
-whose weather lies in the sub-boxes of ``task3.bags``; for each η in ``task3.etas``, ``task3.repetitions`` targets
-(1 − η)·Σₖ λₖ bₖ + η·b0 related to the sources with n_W = ``task3.n_points`` (:mod:`components.domains.sweep`); the
-out-of-ODD decision on the relative gap calibrated on ``task3.calibration_targets`` in-ODD targets for the
-false-alarm rate ``task3.false_alarm_rate``. With ``task3.fresh_targets`` (beyond the paper) a second sweep uses
-fresh targets — their in-ODD part other test images of the sources' sub-boxes — on which the ODD decision is
-calibrated and its ROC curves drawn (the paper's targets reuse the sources' images, so at η = 0 the gap is exactly
-zero and detection is trivial). Writes ``reports/task3/metrics.json`` (per η: d_e_median, gap_median,
-baseline_gap_median, auc (η > 0), …), ``experiments.json`` and plots (box plots of d_E and δ with the chance
-baseline, ROC curves). Also a Prefect deployment on a schedule (prefect.yaml).
+whose weather lies in the sub-boxes of ``task3.bags``, disjoint with their fresh pools
+(:func:`components.domains.task3.split_bags`); for each η in ``task3.etas``, ``task3.repetitions`` targets
+(1 − η)·Σₖ λₖ bₖ + η·b0 related to the sources with n_W = ``task3.n_points`` (:mod:`components.domains.sweep`): the
+paper's targets and, with ``task3.fresh_targets`` (beyond the paper), fresh ones whose in-ODD part is other test
+images of the sources' sub-boxes. The out-of-ODD decision on the relative gap is calibrated on
+``task3.calibration_targets`` in-ODD targets (fresh ones when there are, else the paper's) for the false-alarm rate
+``task3.false_alarm_rate``, and its false-alarm rate measured on ``task3.false_alarm_targets`` in-ODD targets of new
+seeds. Writes ``reports/task3/metrics.json`` (every per-η figure as ``<figure>_paper`` / ``<figure>_fresh``),
+``eta.json`` (the same, one row per η: DVC plots), ``roc.json`` (ROC curves, DVC plots), ``experiments.json`` and
+plots per target kind (box plots of d_E, δ and the relative gap with the chance baseline, ROC curves); logs the
+metrics (the per-η ones at step 100·η) and plots to MLflow. Also a Prefect deployment on a schedule (prefect.yaml).
 """
 
 from __future__ import annotations
 
 import json
 import time
+from pathlib import Path
 
 from prefect import flow, task
 from prefect.cache_policies import NO_CACHE
@@ -23,10 +26,13 @@ from tqdm.auto import tqdm
 
 from components import plots
 from components.core.files import atomic_write_bytes
-from components.domains.sweep import NoiseSweep, experiments_by_eta
-from components.domains.task3 import build_sweep, task3_metrics
+from components.domains.sweep import Experiment, NoiseSweep, experiments_by_eta
+from components.domains.task3 import build_sweep, eta_rows, eta_series, roc_rows, task3_metrics
 from components.evaluate.diagnostics import roc_curve
+from flows import tracking
 from flows.stage import open_stage, parse_stage_args
+
+_TITLES = {"paper": "the paper's targets", "fresh": "fresh targets"}
 
 
 @task(name="task3-noise-level", cache_policy=NO_CACHE)  # the sweep holds onnxruntime sessions
@@ -34,86 +40,112 @@ def run_level(sweep: NoiseSweep, eta: float, repetitions: int, seed: int, fresh:
     return [sweep.run(eta, r, seed, fresh) for r in range(repetitions)]
 
 
+def _plots(plot_dir: Path, kind: str, experiments: list[Experiment], threshold: float | None, model: str) -> list[Path]:
+    """Box plots of d_E, δ and the relative gap (with the ODD threshold when calibrated on this kind) and the ROC
+    curves, for one target kind."""
+    which = _TITLES[kind]
+    d_e = experiments_by_eta(experiments, "d_e")
+    files = [
+        plots.save_figure(
+            plots.boxplots_by_level(d_e, ylabel="d_E = ‖λ̂ − λ‖₂", title=f"Task III ({model}, {which}): weights"),
+            plot_dir / f"d_e-{kind}.png",
+        )
+    ]
+    gap, base = experiments_by_eta(experiments, "gap"), experiments_by_eta(experiments, "baseline_gap")
+    fig = plots.boxplots_by_level(
+        gap, baseline=base, ylabel="mean squared gap δ", title=f"Task III ({model}, {which}): gap"
+    )
+    fig.axes[0].set_yscale("log")
+    files.append(plots.save_figure(fig, plot_dir / f"gap-{kind}.png"))
+    rel = experiments_by_eta(experiments, "relative_gap")
+    fig = plots.boxplots_by_level(
+        rel,
+        baseline=experiments_by_eta(experiments, "baseline_relative_gap"),
+        ylabel="relative gap δ / mean b²",
+        title=f"Task III ({model}, {which}): relative gap"
+        + (" and the ODD threshold" if threshold is not None else ""),
+    )
+    fig.axes[0].set_yscale("log")
+    if threshold is not None:
+        fig.axes[0].axhline(threshold, color="tab:red", linestyle="--", linewidth=1)
+    files.append(plots.save_figure(fig, plot_dir / f"relative-gap-{kind}.png"))
+    files.append(
+        plots.save_figure(
+            plots.roc_curves(
+                {eta: roc_curve(rel[0.0], scores) for eta, scores in rel.items() if eta > 0},
+                score_name="δ / mean b²",
+                title=f"Out-of-ODD detection ({which})",
+            ),
+            plot_dir / f"roc-{kind}.png",
+        )
+    )
+    return files
+
+
 @flow(name="task3", log_prints=True)
 def task3(params_path: str = "params.yaml") -> dict:
-    """Run the Task III sweep; write reports/task3/."""
+    """Run the Task III sweep; write reports/task3/ and log to MLflow."""
     stage = open_stage(params_path)
     params, logger, t = stage.params, stage.logger, stage.params.task3
     out = stage.paths.reports("task3")
-    sweep, members, model_name = build_sweep(params, stage.paths)
-    logger.info("task3 with %s: bags %s", model_name, {n: int(i.size) for n, i in members.items()})
-
-    t0 = time.perf_counter()
-    experiments = []
-    for eta in tqdm(t.etas, desc="task3: noise levels η (the paper's targets)", unit="level"):
-        experiments += run_level(sweep, eta, t.repetitions, params.seed)
-    seconds = time.perf_counter() - t0
-    fresh = t.fresh_targets
-    detector, _ = sweep.calibrate(t.calibration_targets, t.false_alarm_rate, params.seed, fresh=fresh)
-    fresh_experiments = []
-    if fresh:
-        for eta in tqdm(t.etas, desc="task3: noise levels η (fresh targets)", unit="level"):
-            fresh_experiments += run_level(sweep, eta, t.repetitions, params.seed, fresh=True)
-    decided = fresh_experiments if fresh else experiments
-    metrics = task3_metrics(params, model_name, members, experiments, fresh_experiments, detector, seconds)
-    per_eta = metrics["eta"]
-    atomic_write_bytes(out / "metrics.json", json.dumps(metrics, indent=1).encode())
-    rows = [e.to_dict() | {"targets": "paper"} for e in experiments] + [
-        e.to_dict() | {"targets": "fresh"} for e in fresh_experiments
-    ]
-    atomic_write_bytes(out / "experiments.json", json.dumps(rows).encode())
-
-    plot_dir = out / "plots"
-    d_e = experiments_by_eta(experiments, "d_e")
-    plots.save_figure(
-        plots.boxplots_by_level(d_e, ylabel="d_E = ‖λ̂ − λ‖₂", title=f"Task III ({model_name}): weights"),
-        plot_dir / "d_e.png",
-    )
-    gap, base = experiments_by_eta(experiments, "gap"), experiments_by_eta(experiments, "baseline_gap")
-    fig = plots.boxplots_by_level(
-        gap, baseline=base, ylabel="mean squared gap δ", title=f"Task III ({model_name}): gap"
-    )
-    fig.axes[0].set_yscale("log")
-    plots.save_figure(fig, plot_dir / "gap.png")
-    which = "fresh targets" if fresh else "the paper's targets"
-    rel = experiments_by_eta(decided, "relative_gap")
-    fig = plots.boxplots_by_level(
-        rel,
-        baseline=experiments_by_eta(decided, "baseline_relative_gap"),
-        ylabel="relative gap δ / mean b²",
-        title=f"Task III ({model_name}, {which}): relative gap and the ODD threshold",
-    )
-    fig.axes[0].set_yscale("log")
-    fig.axes[0].axhline(detector.threshold, color="tab:red", linestyle="--", linewidth=1)
-    plots.save_figure(fig, plot_dir / "relative-gap.png")
-    plots.save_figure(
-        plots.roc_curves(
-            {eta: roc_curve(rel[0.0], scores) for eta, scores in rel.items() if eta > 0},
-            score_name="δ / mean b²",
-            title=f"Out-of-ODD detection ({which})",
-        ),
-        plot_dir / "roc.png",
-    )
-    if fresh:
-        plots.save_figure(
-            plots.boxplots_by_level(
-                experiments_by_eta(fresh_experiments, "d_e"),
-                ylabel="d_E = ‖λ̂ − λ‖₂",
-                title=f"Task III ({model_name}, fresh targets): weights",
-            ),
-            plot_dir / "d_e-fresh.png",
-        )
+    sweep, split, model_name = build_sweep(params, stage.paths)
     logger.info(
-        "task3: %d paper experiments in %.1f s; d_E median at η=0: %.3g; AUC (%s) at η=0.1: %s; "
-        "threshold %.3g (α = %.2f, observed %.2f)",
-        len(experiments),
+        "task3 with %s: bags %s, fresh pools %s", model_name, split.sizes(), {n: len(p) for n, p in split.pools.items()}
+    )
+
+    kinds = ["paper", "fresh"] if t.fresh_targets else ["paper"]
+    experiments: dict[str, list[Experiment]] = {}
+    t0 = time.perf_counter()
+    for kind in kinds:
+        experiments[kind] = []
+        for eta in tqdm(t.etas, desc=f"task3: noise levels η ({_TITLES[kind]})", unit="level"):
+            experiments[kind] += run_level(sweep, eta, t.repetitions, params.seed, kind == "fresh")
+    calibrated_on = kinds[-1]
+    fresh = calibrated_on == "fresh"
+    detector, _ = sweep.calibrate(t.calibration_targets, t.false_alarm_rate, params.seed, fresh=fresh)
+    check, _ = sweep.check_false_alarms(detector, t.false_alarm_targets, params.seed, fresh=fresh)
+    seconds = time.perf_counter() - t0
+
+    metrics = task3_metrics(
+        model_name, t.n_points, t.weights, split, experiments, detector, calibrated_on, check, seconds
+    )
+    rows = eta_rows(metrics)
+    atomic_write_bytes(out / "metrics.json", json.dumps(metrics, indent=1).encode())
+    atomic_write_bytes(out / "eta.json", json.dumps(rows, indent=1).encode())
+    atomic_write_bytes(out / "roc.json", json.dumps(roc_rows(experiments), indent=1).encode())
+    records = [e.to_dict() | {"targets": kind} for kind, es in experiments.items() for e in es]
+    atomic_write_bytes(out / "experiments.json", json.dumps(records).encode())
+    figures = []
+    for kind, es in experiments.items():
+        figures += _plots(out / "plots", kind, es, detector.threshold if kind == calibrated_on else None, model_name)
+
+    tracking.log_domain_task(
+        stage.paths.root,
+        params.train.experiment,
+        "task3",
+        model_name,
+        tracking.flatten_numbers({k: v for k, v in metrics.items() if k != "eta"}, "task3"),
+        {f"task3.{name}": steps for name, steps in eta_series(rows).items()},
+        [out / "metrics.json", out / "eta.json", *figures],
+        {"pidc.odd_calibrated_on": calibrated_on},
+    )
+    odd = metrics["odd"]["false_alarms_new_seeds"]
+    logger.info(
+        "task3: %s experiments in %.1f s; d_E median at η=0 (paper) %.3g; AUC at η=0.1 (%s targets) %s; threshold "
+        "%.3g (α = %.2f): %d of %d in-ODD %s targets of new seeds flagged, %.3f [%.3f, %.3f]",
+        metrics["experiments"],
         seconds,
-        per_eta["0"]["d_e_median"],
-        which,
-        per_eta.get("0.1", {}).get("auc"),
+        metrics["eta"]["0"]["d_e_median_paper"],
+        calibrated_on,
+        metrics["eta"].get("0.1", {}).get(f"auc_{calibrated_on}"),
         detector.threshold,
         t.false_alarm_rate,
-        per_eta["0"]["flagged_rate"],
+        odd["flagged"],
+        odd["n"],
+        calibrated_on,
+        odd["rate"],
+        odd["ci_low"],
+        odd["ci_high"],
     )
     return metrics
 

@@ -7,12 +7,15 @@ what is tracked, and how runs and registered models are named, is written in one
   setting) and a child run per model, tagged ``pidc.model``, found or created across processes (:func:`model_run`);
 - each exported model is logged in its training run (ONNX flavor: the whole-density graph, the card and the other
   graphs as extra files) and registered as ``<export.registered_prefix><model id>`` (:func:`register_model`);
-- after the evaluation every registered version is tagged with its Task I metrics and the chosen model gets the
-  alias ``champion`` (:func:`set_champion_alias`).
+- after the evaluation each model's run gets its Task I metrics, headline and per parameter (:func:`log_task1`),
+  every registered version is tagged with the headline ones, the chosen model gets the alias ``champion`` and the
+  runner-up ``challenger`` (:func:`set_champion_alias`);
+- each ``task2``/``task3`` run is a run ``<task>-<model>`` nested under the model's training run, its metrics named
+  as in ``reports/<task>/metrics.json`` (:func:`log_domain_task`).
 
 The tracking store is ``MLFLOW_TRACKING_URI`` or ``sqlite:///<project>/mlflow.db``.
 
-Used by the ``train``, ``variant``, ``export``, ``export-variant`` and ``evaluate`` stages.
+Used by the ``train``, ``variant``, ``export``, ``export-variant``, ``evaluate``, ``task2`` and ``task3`` stages.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import json
 import os
 import subprocess
 import tempfile
+import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -38,6 +42,7 @@ from components.core.files import sha256_file
 
 __all__ = [
     "CHAMPION_ALIAS",
+    "CHALLENGER_ALIAS",
     "tracking_uri",
     "git_commit",
     "grid_key",
@@ -46,12 +51,16 @@ __all__ = [
     "newest_model_run",
     "registered_name",
     "register_model",
+    "task1_metric_names",
     "log_task1",
     "set_champion_alias",
     "download_registered_model",
+    "flatten_numbers",
+    "log_domain_task",
 ]
 
 CHAMPION_ALIAS = "champion"
+CHALLENGER_ALIAS = "challenger"
 
 
 def tracking_uri(base: Path) -> str:
@@ -228,30 +237,62 @@ def register_model(folder: Path, params: Params, base: Path, model_id: str) -> d
     return {"name": name, "version": version, "run_id": run}
 
 
+def task1_metric_names(result: Mapping[str, Any]) -> dict[str, float]:
+    """The MLflow metrics of one model's Task I ``result``: ``task1.<metric>`` for its headline metrics (booleans as
+    0/1) and ``task1.<parameter>.<subset>.<figure>`` for its per-parameter figures (``result["parameters"]``:
+    subset → parameter → figure, e.g. ``task1.fog_density.night.median_abs_error``)."""
+    values = {f"task1.{k}": float(v) for k, v in result["metrics"].items()}
+    for subset, per_parameter in (result.get("parameters") or {}).items():
+        for name, figures in per_parameter.items():
+            values |= {f"task1.{name}.{subset}.{k}": float(v) for k, v in figures.items()}
+    return values
+
+
 def log_task1(base: Path, experiment: str, results: list[dict], plots: Path) -> None:
-    """Log each model's Task I metrics (``task1.<name>``) and plots (``plots/<model>/*.png``) to its newest run."""
+    """Log each model's Task I metrics (:func:`task1_metric_names`) and plots (``plots/<model>/*.png``) to its newest
+    run."""
+    from mlflow.entities import Metric
+
     client = _client(base)
     exp = client.get_experiment_by_name(experiment)
     if exp is None:
         return
+    now = int(time.time() * 1000)
     for r in results:
         run_id = newest_model_run(client, exp.experiment_id, r["model"])
         if run_id is None:
             continue
-        for k, v in r["metrics"].items():
-            client.log_metric(run_id, f"task1.{k}", float(v))
+        rows = [Metric(k, v, now, 0) for k, v in task1_metric_names(r).items()]
+        for i in range(0, len(rows), 1000):  # MLflow's batch limit
+            client.log_batch(run_id, metrics=rows[i : i + 1000])
         for f in sorted((plots / r["model"]).glob("*.png")):
             client.log_artifact(run_id, str(f), artifact_path="task1")
 
 
+def _alias(client: mlflow.MlflowClient, name: str, alias: str, version: str | None) -> None:
+    """Give ``alias`` to ``version`` of ``name``, or take it away from ``name`` (None)."""
+    if version is not None:
+        client.set_registered_model_alias(name, alias, version)
+        return
+    try:
+        client.delete_registered_model_alias(name, alias)
+    except mlflow.exceptions.MlflowException:
+        pass  # no alias there
+
+
 def set_champion_alias(
-    base: Path, params: Params, metrics: Mapping[str, Mapping[str, float]], champion: str
-) -> dict[str, str]:
+    base: Path,
+    params: Params,
+    metrics: Mapping[str, Mapping[str, float]],
+    champion: str,
+    challenger: str | None = None,
+) -> dict[str, dict[str, str]]:
     """Tag every registered version with its Task I ``metrics`` (per model id), give the alias ``champion`` to
-    ``champion``'s newest version and remove it from every other model. Returns ``{"version", "uri"}`` of the
-    champion, or ``{}`` when it is not in the Model Registry."""
+    ``champion``'s newest version and ``challenger`` to ``challenger``'s (the runner-up), and remove both aliases from
+    every other model. Returns ``{"champion": {"version", "uri"}, "challenger": {...}}`` for those in the Model
+    Registry (a model not registered is left out)."""
     client = _client(base)
-    found: dict[str, str] = {}
+    found: dict[str, dict[str, str]] = {}
     for model_id, values in metrics.items():
         name = registered_name(params, model_id)
         try:
@@ -260,17 +301,13 @@ def set_champion_alias(
             versions = []
         if not versions:
             continue
-        version = versions[0].version
+        version = str(versions[0].version)
         for k, v in values.items():
             client.set_model_version_tag(name, version, f"task1.{k}", f"{float(v):.6g}")
-        if model_id == champion:
-            client.set_registered_model_alias(name, CHAMPION_ALIAS, version)
-            found = {"version": str(version), "uri": f"models:/{name}@{CHAMPION_ALIAS}"}
-        else:
-            try:
-                client.delete_registered_model_alias(name, CHAMPION_ALIAS)
-            except mlflow.exceptions.MlflowException:
-                pass  # no alias there
+        for alias, holder in ((CHAMPION_ALIAS, champion), (CHALLENGER_ALIAS, challenger)):
+            _alias(client, name, alias, version if model_id == holder else None)
+            if model_id == holder:
+                found[alias] = {"version": version, "uri": f"models:/{name}@{alias}"}
     return found
 
 
@@ -283,3 +320,52 @@ def download_registered_model(uri: str, base: Path | None = None) -> Path:
     dest = Path(tempfile.mkdtemp(prefix="pidc-model-"))
     local = Path(mlflow.artifacts.download_artifacts(artifact_uri=uri, dst_path=str(dest)))
     return local / "extra_files"
+
+
+def flatten_numbers(values: Mapping[str, Any], prefix: str) -> dict[str, float]:
+    """The numbers of a nested mapping as ``{"<prefix>.<dotted.key>": value}`` (list items keyed by index; booleans
+    as 0/1; strings and None left out): the MLflow names of a report's metrics."""
+    out: dict[str, float] = {}
+    for key, value in values.items():
+        name = f"{prefix}.{key}"
+        if isinstance(value, Mapping):
+            out |= flatten_numbers(value, name)
+        elif isinstance(value, (list, tuple)):
+            out |= flatten_numbers({str(i): v for i, v in enumerate(value)}, name)
+        elif isinstance(value, (bool, int, float, np.integer, np.floating)) and np.isfinite(float(value)):
+            out[name] = float(value)
+    return out
+
+
+def log_domain_task(
+    base: Path,
+    experiment: str,
+    task: str,
+    model_id: str,
+    metrics: Mapping[str, float],
+    series: Mapping[str, Mapping[int, float]],
+    artifacts: list[Path],
+    tags: Mapping[str, str] | None = None,
+) -> str:
+    """Log one ``task2``/``task3`` run: a new run ``<task>-<model>`` in ``experiment``, nested under the model's newest
+    training run when there is one, tagged ``pidc.task`` and ``pidc.evaluated_model`` (not ``pidc.model``, which names
+    training runs); ``metrics`` as they are (e.g. :func:`flatten_numbers`), each ``series`` name at integer steps
+    (Task III: the per-η figures at step 100·η), the ``artifacts`` files and extra ``tags``. Returns the run id."""
+    from mlflow.entities import Metric
+
+    client = _client(base)
+    experiment_id = _experiment_id(client, experiment)
+    parent = newest_model_run(client, experiment_id, model_id)
+    tags = {"pidc.task": task, "pidc.evaluated_model": model_id, "git_commit": git_commit(base), **(tags or {})}
+    if parent:
+        tags["mlflow.parentRunId"] = parent
+    run_id = client.create_run(experiment_id, tags=tags, run_name=f"{task}-{model_id}").info.run_id
+    now = int(time.time() * 1000)
+    rows = [Metric(k, float(v), now, 0) for k, v in metrics.items()]
+    rows += [Metric(k, float(v), now, int(step)) for k, steps in series.items() for step, v in steps.items()]
+    for i in range(0, len(rows), 1000):  # MLflow's batch limit
+        client.log_batch(run_id, metrics=rows[i : i + 1000])
+    for f in artifacts:
+        client.log_artifact(run_id, str(f), artifact_path=task)
+    client.set_terminated(run_id, "FINISHED")
+    return run_id

@@ -73,9 +73,10 @@ def train_model(backbone_name: str, size: int, params_path: str, variant_name: s
     }
     theta = {s: splits[s].theta[: len(x[s])].astype(np.float32) for s in dataset.SPLITS}
 
-    flow_cfg = flow_config(params.train, ensemble=variant.ensemble if variant else None)
+    flow_cfg = flow_config(params.train, size=size, ensemble=variant.ensemble if variant else None)
     cfg = training_config(
         params.train,
+        size=size,
         trainable=backbone.trainable,
         seed=seeding.derive_seed(params.seed, "train") % 2**31,
         balance=variant.balance if variant else None,

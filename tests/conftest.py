@@ -38,8 +38,10 @@ def micro_params(**overrides) -> dict:
     p["data"]["runner"].update(kind="threads", workers=2)
     p["contact_sheet"].update(steps=3, scenes=1)
     p["train"]["sizes"] = [8, 16, 24]
+    p["train"]["scale_to"] = 8  # no small-data scaling of epochs and widths: the micro models train for seconds
     p["train"]["variants"] = {"balanced": {"backbone": "cues", "size": 16, "balance": 10.0, "ensemble": 1}}
     p["evaluate"].update(images=8, samples=400, ppc_images=1, ppc_renders=2, example_images=1)
+    p["export"]["champion_max_calibration_error"] = 1.0  # models trained for seconds are not calibrated: any may win
     p["task2"].update(images=16, images_per_scene=4, samples=200)
     p["task3"].update(
         bags={  # wide sub-boxes: the micro test split is small
@@ -58,6 +60,7 @@ def micro_params(**overrides) -> dict:
         repetitions=3,
         n_points=8,
         calibration_targets=20,
+        false_alarm_targets=20,
         false_alarm_rate=0.1,
     )
     for key, value in overrides.items():
@@ -175,6 +178,7 @@ FAST_TRAINING = {
     "train.epochs": 2,
     "train.embedding_epochs": 1,
     "train.sizes": [8, 24],
+    "train.scale_to": 8,
     "train.variants": {"ensemble": {"backbone": "cues", "size": 24, "balance": 0.0, "ensemble": 2}},
     "backbones": {"names": ["cues", "cnn"], "pretrained_dir": None, "batch_size": 256},
     "train.flow": TINY_FLOW,

@@ -129,11 +129,12 @@ def test_single_image_is_a_batch_of_one(textures: np.ndarray) -> None:
 # -- cues -----------------------------------------------------------------------------------------------
 def test_cues_names_match_dim() -> None:
     b = get_backbone("cues")
-    assert b.dim == len(FEATURE_NAMES) == len(set(FEATURE_NAMES)) == 80
+    assert b.dim == len(FEATURE_NAMES) == len(set(FEATURE_NAMES)) == 241
 
 
 def test_cues_mirror_symmetry(textures: np.ndarray) -> None:
-    """A left-right flip reverses edge orientation (bin k ↔ −k) and leaves every other cue unchanged."""
+    """A left-right flip reverses edge orientation (bin k ↔ −k), mirrors the 4×4 grid's columns and swaps the left and
+    right walls, and leaves every other cue unchanged."""
     b = get_backbone("cues")
     f = b.extract(textures)
     g = b.extract(np.ascontiguousarray(textures[:, :, ::-1]))
@@ -142,6 +143,13 @@ def test_cues_mirror_symmetry(textures: np.ndarray) -> None:
         idx = [FEATURE_NAMES.index(f"{prefix}{k}") for k in range(8)]
         for k in range(8):
             perm[idx[k]] = idx[(-k) % 8]
+    for prefix in ("grid_log_y", "grid_log_r_over_g", "grid_log_b_over_g"):
+        for r in range(4):
+            for c in range(4):
+                perm[FEATURE_NAMES.index(f"{prefix}{r}{c}")] = FEATURE_NAMES.index(f"{prefix}{r}{3 - c}")
+    for q in (10, 50, 90):
+        left, right = FEATURE_NAMES.index(f"left_wall_log_y_q{q}"), FEATURE_NAMES.index(f"right_wall_log_y_q{q}")
+        perm[left], perm[right] = right, left
     np.testing.assert_allclose(g, f[:, perm], rtol=1e-3, atol=2e-3)
 
 

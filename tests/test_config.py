@@ -2,6 +2,7 @@
 missing keys and bad values are named; `pidc config check` validates without running anything."""
 
 import dataclasses
+import math
 import shutil
 import subprocess
 import sys
@@ -113,7 +114,7 @@ def test_profiles_merge_mappings_and_replace_lists(tmp_path: Path):
     shutil.copy(PROJECT_ROOT / "params.yaml", tmp_path / "params.yaml")
     p = load_params(tmp_path / "params.yaml", profile="small")
     base = load_params(tmp_path / "params.yaml")
-    assert p.profile == "small" and p.data.splits == {"train": 10000, "val": 2000, "test": 3000}
+    assert p.profile == "small" and p.data.splits == {**base.data.splits, "test": 3000}
     assert p.data.runner.workers == 1 and p.data.runner.kind == base.data.runner.kind
     assert p.backbones.names == ("cues",) and p.backbones.batch_size == base.backbones.batch_size
     assert p.train.variants == base.train.variants
@@ -198,7 +199,7 @@ def test_unknown_key_is_named():
         (lambda d: d["data"]["splits"].update(train=-5), r"data\.splits\.train"),
         (lambda d: d["simulator"].update(backend="unreal"), r"simulator\.backend"),
         (lambda d: d["prior"].update(fog_density=[0, 200]), r"'fog_density' = 200 is outside"),
-        (lambda d: d["train"].update(sizes=[1000, 50000]), r"train split must cover the largest training size"),
+        (lambda d: d["train"].update(sizes=[1000, 60000]), r"train split must cover the largest training size"),
         (lambda d: d["data"]["runner"].update(kind="mpi"), r"data\.runner\.kind"),
         (
             lambda d: d["train"]["variants"].update(
@@ -342,38 +343,53 @@ def test_settings_set_every_field_of_the_library_classes(profile, trainable, mon
     t = load_params(PROJECT_ROOT / "params.yaml", profile=profile).train
     flow_kw = _recorded(monkeypatch, settings, "FlowConfig")
     train_kw = _recorded(monkeypatch, settings, "TrainingConfig")
-    flow = settings.flow_config(t)
-    cfg = settings.training_config(t, trainable=trainable, seed=11)
+    flow = settings.flow_config(t, size=max(t.sizes))
+    cfg = settings.training_config(t, size=t.sizes[0], trainable=trainable, seed=11)
     assert set(flow_kw) == {f.name for f in dataclasses.fields(FlowConfig)}
     assert set(train_kw) == {f.name for f in dataclasses.fields(TrainingConfig)}
     assert dataclasses.asdict(flow) == {**t.flow.model_dump(), "hidden_features": tuple(t.flow.hidden_features)}
-    same = {f.name for f in dataclasses.fields(TrainingConfig)} - {"epochs", "seed"}
+    same = {f.name for f in dataclasses.fields(TrainingConfig)} - {"epochs", "seed", "patience"}
     assert {k: getattr(cfg, k) for k in same} == {k: getattr(t, k) for k in same}
-    assert cfg.epochs == (t.embedding_epochs if trainable else t.epochs) and cfg.seed == 11
+    assert cfg.patience == settings.patience_for(t, t.sizes[0])
+    assert cfg.epochs == settings.epochs_for(t, t.sizes[0], trainable=trainable) and cfg.seed == 11
 
 
-def test_settings_reproduce_the_pipelines_settings():
-    """The default profile trains exactly as before (when the library defaults filled the unset fields)."""
-    from components.posterior import FlowConfig, TrainingConfig
-    from components.posterior.settings import flow_config, training_config
+@pytest.mark.parametrize("trainable", [False, True])
+def test_epochs_follow_the_sample_budget(trainable):
+    """A model of n images trains min(cap·s, ⌈budget / n⌉) epochs (s = scale_to / n ≥ 1 for frozen features, 1 for a
+    jointly trained backbone): never (much) more samples than the budget, fewer epochs for more images, at least one."""
+    from components.posterior.settings import epochs_for, small_data_scale, training_config
 
-    p = load_params(PROJECT_ROOT / "params.yaml")
-    seed = seeding.derive_seed(p.seed, "train") % 2**31
-    assert flow_config(p.train) == FlowConfig(transforms=3, hidden_features=(128, 128), bins=8, passes=2, ensemble=1)
-    assert flow_config(p.train).standardize is True
-    assert flow_config(p.train, ensemble=3) == FlowConfig(
-        transforms=3, hidden_features=(128, 128), bins=8, passes=2, ensemble=3
-    )
-    before = dict(batch_size=256, lr=1e-3, weight_decay=1e-4, schedule="cosine", patience=10, clip_norm=5.0, seed=seed)
-    assert training_config(p.train, trainable=False, seed=seed) == TrainingConfig(epochs=60, balance=0.0, **before)
-    assert training_config(p.train, trainable=True, seed=seed) == TrainingConfig(epochs=8, balance=0.0, **before)
-    assert training_config(p.train, trainable=False, seed=seed, balance=100.0) == TrainingConfig(
-        epochs=60, balance=100.0, **before
-    )
-    cfg = training_config(p.train, trainable=False, seed=seed)
-    assert (cfg.min_lr, cfg.plateau_factor, cfg.plateau_patience, cfg.min_delta) == (1e-6, 0.5, 5, 0.0)
-    for f in dataclasses.fields(TrainingConfig):  # every value is a plain Python value, as the library's defaults
-        assert type(getattr(cfg, f.name)) is type(getattr(TrainingConfig(), f.name)) or f.name == "clip_norm"
+    t = load_params(PROJECT_ROOT / "params.yaml").train
+    cap, budget = (t.embedding_epochs, t.embedding_sample_budget) if trainable else (t.epochs, t.sample_budget)
+    sizes = [1, 7, 1000, 5000, 20000, 50000, budget, 10 * budget]
+    epochs = [epochs_for(t, n, trainable=trainable) for n in sizes]
+    scale = [1.0 if trainable else small_data_scale(t, n) for n in sizes]
+    assert all(1 <= e <= math.ceil(cap * s) for e, s in zip(epochs, scale, strict=True))
+    assert all((e - 1) * n < budget for e, n in zip(epochs, sizes, strict=True))  # the last epoch may overrun
+    assert epochs == sorted(epochs, reverse=True) and epochs[-1] == 1
+    assert training_config(t, size=5000, trainable=trainable, seed=1).epochs == epochs[3]
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(ValueError, match="size must be a positive integer"):
+            epochs_for(t, bad, trainable=trainable)
+
+
+def test_small_training_sets_train_longer_through_a_smaller_flow():
+    """Below scale_to images: s× epochs and patience, hidden widths / √s (multiples of 16, ≥ 32, never wider);
+    at and above scale_to: train's settings as written."""
+    from components.posterior.settings import epochs_for, flow_config, hidden_for, patience_for
+
+    t = load_params(PROJECT_ROOT / "params.yaml").train
+    big = t.scale_to
+    assert hidden_for(t, big) == hidden_for(t, 10 * big) == tuple(t.flow.hidden_features)
+    assert patience_for(t, big) == t.patience and epochs_for(t, big, trainable=False) <= t.epochs
+    widths = [hidden_for(t, n) for n in (big // 2, big // 4, big // 100, 1)]
+    for w in widths:
+        assert all(32 <= h <= h0 and h % 16 == 0 for h, h0 in zip(w, t.flow.hidden_features, strict=True))
+    assert [sum(w) for w in widths] == sorted((sum(w) for w in widths), reverse=True)
+    assert patience_for(t, big // 4) == math.ceil(4 * t.patience)
+    assert epochs_for(t, big // 4, trainable=False) == min(4 * t.epochs, math.ceil(t.sample_budget / (big // 4)))
+    assert flow_config(t, size=big // 4).hidden_features == hidden_for(t, big // 4)
 
 
 def test_settings_refuse_to_leave_a_field_to_its_default():

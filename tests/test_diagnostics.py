@@ -17,6 +17,7 @@ from scipy import stats
 from components.core import seeding
 from components.evaluate.diagnostics import (
     DEFAULT_LEVELS,
+    calibration_band,
     calibration_error,
     coverage_error,
     expected_coverage,
@@ -71,6 +72,33 @@ def test_superiority_of_exact_posterior_is_uniform() -> None:
     _, pi_narrow = _credibility_and_pi(0.5, seed=1)
     assert stats.kstest(pi_narrow, "uniform").pvalue < 1e-6
     assert np.median(pi_narrow) < 0.3  # the ground truth is less credible than most draws of an overconfident model
+
+
+def test_calibration_band_is_the_quantile_of_a_calibrated_models_error() -> None:
+    """The band holds 95 % of the calibration errors of perfectly calibrated models (fresh replicates, continuous
+    uniform credibilities); over every level it is the Kolmogorov–Smirnov quantile 1.358/√n; the exact posterior
+    of the toy lies inside it, the over- and underconfident ones far outside."""
+    n = 500
+    band = calibration_band(n, N_SAMPLES, DEFAULT_LEVELS, seeding.rng(0, "test", "band"))
+    assert band == calibration_band(n, N_SAMPLES, DEFAULT_LEVELS, seeding.rng(0, "test", "band"))  # seeded
+    fresh = seeding.rng(1, "test", "band", "fresh")
+    errors = np.array([calibration_error(fresh.random(n), DEFAULT_LEVELS) for _ in range(2000)])
+    inside = (errors <= band).mean()
+    assert abs(inside - 0.95) < 4 * math.sqrt(0.95 * 0.05 / 2000) + 0.01, inside
+    sup = calibration_band(N_OBS, N_SAMPLES, None, seeding.rng(2, "test", "band"))
+    assert sup == pytest.approx(stats.kstwo.ppf(0.95, N_OBS), rel=0.05)
+    assert calibration_band(N_OBS, N_SAMPLES, DEFAULT_LEVELS, seeding.rng(2, "test", "band")) <= sup < band
+    assert calibration_band(N_OBS, N_SAMPLES, None, seeding.rng(2, "test", "band"), quantile=0.99) > sup
+    exact, _ = _credibility_and_pi(1.0)
+    narrow, _ = _credibility_and_pi(0.5)
+    wide, _ = _credibility_and_pi(2.0)
+    band = calibration_band(N_OBS, N_SAMPLES, DEFAULT_LEVELS, seeding.rng(3, "test", "band"))
+    assert calibration_error(exact, DEFAULT_LEVELS) <= band
+    assert calibration_error(narrow, DEFAULT_LEVELS) > 5 * band and calibration_error(wide, DEFAULT_LEVELS) > 5 * band
+    with pytest.raises(ValueError, match="images must be an integer >= 1"):
+        calibration_band(0, 10, None, seeding.rng(0))
+    with pytest.raises(ValueError, match="quantile must be in"):
+        calibration_band(10, 10, None, seeding.rng(0), quantile=1.0)
 
 
 def test_definitions_on_small_arrays() -> None:

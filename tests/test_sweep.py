@@ -152,3 +152,18 @@ def test_fresh_targets_use_held_out_images_of_the_sources_weather():
             LAMBDA,
             fresh_pools=[pools[0], pools[1][:3], pools[2]],
         )
+
+
+def test_false_alarm_check_uses_new_seeds_drawn_like_the_calibration(sweep):
+    """The calibration, the sweep's η = 0 and the check's in-ODD targets come from three disjoint seed streams (no
+    target is reused), and the check is deterministic."""
+    _, calibration = sweep.calibrate(20, 0.1, seed=3)
+    swept = np.array([sweep.run(0.0, r, seed=3).relative_gap for r in range(20)])
+    detector = OddDetector(float(np.median(calibration)), 0.1, 20)
+    check, checked = sweep.check_false_alarms(detector, 20, seed=3)
+    assert len(np.intersect1d(checked, calibration)) == 0 and len(np.intersect1d(checked, swept)) == 0
+    assert check.n == 20 and check.flagged == int(np.sum(checked > detector.threshold)) and check.targets == "paper"
+    again, _ = sweep.check_false_alarms(detector, 20, seed=3)
+    assert again == check
+    with pytest.raises(ValueError, match="n_targets must be a positive integer"):
+        sweep.check_false_alarms(detector, 0, seed=3)

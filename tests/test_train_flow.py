@@ -163,9 +163,20 @@ def test_export_evaluate_champion(project, monkeypatch):
     # the MLflow Model Registry: one name per model, versions tagged with their metrics, the champion alias
     names = {m.name for m in client.search_registered_models()}
     assert names == {f"pidc-{m}" for m in metrics}
-    best = min(metrics, key=lambda m: metrics[m]["calibration_error"])
+    # the champion rule (components.evaluate.champion): lowest test NLL within the band, else below the ceiling
+    eligible = [m for m in metrics if metrics[m]["within_band"]]
+    ceiling = yaml.safe_load(grid.read_text())["export"]["champion_max_calibration_error"]
+    eligible = eligible or [m for m in metrics if metrics[m]["calibration_error"] <= ceiling]
+    best = min(sorted(eligible), key=lambda m: metrics[m]["test_nll"])
     champion = json.loads((folder / "reports/task1/champion.json").read_text())
     assert champion["model"] == best and champion["uri"] == f"models:/pidc-{best}@champion"
+    assert (
+        champion["rule"] in ("within_band", "ceiling") and champion["metrics"]["test_nll"] == metrics[best]["test_nll"]
+    )
+    rows = {p.stem: json.loads(p.read_text()) for p in (folder / "reports/task1/models").glob("*.json")}
+    assert set(rows) == set(metrics) and len({tuple(r) for r in rows.values()}) == 1, "one row per model, same keys"
+    parameters = json.loads((folder / "reports/task1/parameters.json").read_text())
+    assert sum(parameters["cnn-8"][s]["fog_density"]["images"] for s in ("day", "night")) == 8
     holders = [n for n in names if "champion" in client.get_registered_model(n).aliases]
     assert holders == [f"pidc-{best}"], "exactly one registered model holds the alias"
     version = client.get_model_version_by_alias(f"pidc-{best}", "champion")

@@ -160,6 +160,13 @@ class TrainConfig(_Section):
     epochs: PositiveInt
     #: maximum epochs for a backbone trained jointly with the flow (costly on a CPU)
     embedding_epochs: PositiveInt
+    #: training samples seen at most (epochs × size): a model of ``size`` images trains
+    #: min(epochs, ⌈sample_budget / size⌉) epochs, so large training sets cost a bounded time
+    sample_budget: PositiveInt
+    #: the same for a backbone trained jointly with the flow (with ``embedding_epochs``)
+    embedding_sample_budget: PositiveInt
+    #: below this many training images, s = scale_to / size: s× epochs and patience, hidden widths / √s
+    scale_to: PositiveInt
     batch_size: PositiveInt
     lr: Annotated[float, Field(gt=0)]
     weight_decay: Annotated[float, Field(ge=0)]
@@ -189,8 +196,8 @@ class TrainConfig(_Section):
 class EvaluateConfig(_Section):
     """Task I evaluation of every model of the grid on the test split."""
 
-    #: test images evaluated (the first ones of the test split)
-    images: PositiveInt
+    #: test images evaluated: ``all`` (the whole test split) or a count ≤ ``data.splits.test`` (the first ones)
+    images: PositiveInt | Literal["all"]
     #: posterior samples per image (HPD credibility, coverage, π); the 99.73 % HDR of the plots needs ≥ 371
     samples: Annotated[int, Field(ge=400)]
     #: images given a posterior predictive check, and re-renders per check (posterior and prior each)
@@ -198,6 +205,19 @@ class EvaluateConfig(_Section):
     ppc_renders: Annotated[int, Field(ge=2)]
     #: test images shown as histograms and corner plots per model
     example_images: NonNegativeInt
+    #: ``calibration_band``: this quantile of the calibration error of a perfectly calibrated model on the same
+    #: images and samples, simulated ``band_replicates`` times (seeded); ``within_band``: the error is ≤ the band
+    band_level: Annotated[float, Field(gt=0, lt=1)]
+    band_replicates: Annotated[int, Field(ge=100)]
+    #: the task runner evaluating models in parallel (processes: one onnxruntime thread each)
+    runner: RunnerConfig
+
+    @field_validator("images", mode="before")
+    @classmethod
+    def _images(cls, v: object) -> object:
+        if v == "all" or (isinstance(v, int) and not isinstance(v, bool) and v > 0):
+            return v
+        raise ValueError(f"must be a positive number of test images or 'all' (the whole test split), got {v!r}")
 
 
 class ExportConfig(_Section):
@@ -208,8 +228,11 @@ class ExportConfig(_Section):
     exporter: Literal["torchscript", "dynamo"]
     #: registered model name = prefix + model id (e.g. ``pidc-cues-1000``)
     registered_prefix: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]*$")]
-    #: the Task I metric (lower is better) whose best model gets the alias ``champion`` after the evaluation
-    champion_metric: Literal["calibration_error", "test_nll"]
+    #: the champion (alias ``champion``, ``reports/task1/champion.json``) is the lowest test NLL among the models whose
+    #: calibration error lies within the band of a perfectly calibrated model (``evaluate.band_level``); when none
+    #: does, the lowest test NLL among those with a calibration error ≤ this ceiling (the choice is recorded);
+    #: when none is below it either, the evaluation fails
+    champion_max_calibration_error: Annotated[float, Field(gt=0, le=1)]
 
 
 class GaussianMode(_Section):
@@ -230,6 +253,8 @@ class Task2Config(_Section):
     images_per_scene: PositiveInt
     #: the fixed predicted parameters (every one but fog_density and precipitation), physical units
     fixed: dict[str, float]
+    #: the sun azimuth of every image of the bag, degrees (the paper fixes every parameter but the two that vary)
+    sun_azimuth_angle: Annotated[float, Field(ge=0, lt=360)]
     #: the Gaussian mixture over (fog_density, precipitation), truncated to the prior box
     modes: tuple[GaussianMode, ...]
     #: draws from the estimate and from the true distribution (metrics and plots)
@@ -275,6 +300,9 @@ class Task3Config(_Section):
     #: the ODD decision's false-alarm rate α, and the in-ODD (η = 0) targets calibrating its threshold
     false_alarm_rate: Annotated[float, Field(gt=0, lt=1)]
     calibration_targets: PositiveInt
+    #: in-ODD (η = 0) targets of new seeds (neither the calibration's nor the sweep's) on which the false-alarm rate
+    #: is measured, with its Clopper–Pearson interval
+    false_alarm_targets: PositiveInt
     #: beyond the paper: also run fresh targets (their in-ODD part from other test images of the sources' sub-boxes);
     #: the ODD decision is then calibrated and judged on them (see components.domains.sweep)
     fresh_targets: bool
@@ -287,7 +315,7 @@ class Task3Config(_Section):
         if len(self.weights) != len(names) - 1:
             raise ValueError(f"weights has {len(self.weights)} entries for {len(names) - 1} sources (b1…)")
         if abs(sum(self.weights) - 1.0) > 1e-9:
-            raise ValueError(f"weights must sum to 1, got {sum(self.weights)}")
+            raise ValueError(f"task3.weights must sum to 1 (λ on the simplex), got {list(self.weights)}")
         if 0.0 not in self.etas:
             raise ValueError("etas must contain 0 (in-ODD targets: the reference of the ROC curves)")
         if self.n_points < len(names) - 1:
@@ -348,11 +376,30 @@ class Params(_Section):
                     f"train.variants.{name} needs a backbone in backbones.names and a size in "
                     f"train.sizes, got {v.backbone!r} and {v.size}"
                 )
-        if self.evaluate.images > self.data.splits["test"]:
+        if self.evaluate.images != "all" and self.evaluate.images > self.data.splits["test"]:
             raise ValueError(
                 f"evaluate.images is {self.evaluate.images} but the test split has only "
                 f"{self.data.splits['test']} images"
             )
+        return self
+
+    @model_validator(mode="after")
+    def _domains_inside_prior(self) -> Params:
+        box = self.box
+        for name, value in self.task2.fixed.items():
+            i = box.names.index(name)
+            if not box.low[i] <= value <= box.high[i]:
+                raise ValueError(
+                    f"task2.fixed.{name} = {value:g} lies outside the prior [{box.low[i]:g}, {box.high[i]:g}]"
+                )
+        for bag, cfg in self.task3.bags.items():
+            for name, (low, high) in cfg.box.items():
+                i = box.names.index(name)
+                if low < box.low[i] or high > box.high[i]:
+                    raise ValueError(
+                        f"task3.bags.{bag}.box.{name} = [{low:g}, {high:g}] lies outside the prior "
+                        f"[{box.low[i]:g}, {box.high[i]:g}]: a bag's sub-box must lie inside the prior"
+                    )
         return self
 
     @property

@@ -4,10 +4,12 @@
 - :mod:`~components.domains.relative`: simplex weights λ, the gap δ, the ODD decision (``relate``,
   ``OddDetector``, ``calibrate_on_sources``) (Task III).
 - :mod:`~components.domains.scenarios`: known weather distributions (Gaussian mixtures, sub-boxes).
+- :mod:`~components.domains.distances`: scores of an estimate against the truth (unbiased energy distance, W₁ and
+  marginal HDRs per parameter) (Task II).
 - :mod:`~components.domains.sweep`: the noise sweep over η (``NoiseSweep``, ``summarize_sweep``).
 - :mod:`~components.domains.task2`, :mod:`~components.domains.task3`: what the ``task2`` and ``task3`` stages run.
 
 Used by the ``task2`` and ``task3`` stages and the ``pidc`` CLI (``domain``, ``relate``).
 """
 
-__all__ = ["absolute", "relative", "scenarios", "sweep", "task2", "task3"]
+__all__ = ["absolute", "distances", "relative", "scenarios", "sweep", "task2", "task3"]

@@ -339,6 +339,11 @@ class OddDetector:
             )
         return cls(float(np.sort(gaps)[rank - 1]), alpha, n)
 
+    @property
+    def rank(self) -> int:
+        """r = ⌈(n+1)(1−α)⌉: the threshold is the r-th smallest of the n calibration gaps."""
+        return math.ceil((self.n_calibration + 1) * (1.0 - self.false_alarm_rate) - 1e-9)
+
     def decide(self, gap: float) -> bool:
         """True when the target with mean squared gap ``gap`` is outside the ODD (gap > threshold)."""
         g = float(gap)

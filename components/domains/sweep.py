@@ -15,11 +15,15 @@ again; it sees new images of the same weather. With ``fresh_pools`` (held-out ob
 weather, e.g. other test images in the same sub-box), a fresh target replaces each bₖ by a random subset of its
 pool of the same size: at η = 0 it is in the ODD but not an exact mixture, so δ at η = 0 measures the sampling
 noise of a bag, the decision threshold is calibrated on realistic in-ODD targets, and the ROC curves say how much
-out-of-ODD weather can be told from that noise. Each experiment relates the target to the sources
+out-of-ODD weather can be told from that noise. A pool must hold none of the bags' observations (the caller
+guarantees it: :func:`components.domains.task3.split_bags` builds bags and pools disjoint), else a fresh target
+matches a source exactly where it reuses that source's images. Each experiment relates the target to the sources
 (:func:`components.domains.relative.relate`, n_W points): λ̂, the gap δ(λ̂), its relative version, δ for a λ drawn at
 random on the simplex (the chance baseline) and d_E = ‖λ̂ − λ‖₂. :meth:`NoiseSweep.calibrate` calibrates the
-out-of-ODD decision on in-ODD targets (η = 0) of its own seeds; :func:`summarize_sweep` gives the per-η medians,
-detection rates at the calibrated threshold and the ROC AUC of η against η = 0.
+out-of-ODD decision on in-ODD targets (η = 0) of its own seeds, :meth:`NoiseSweep.check_false_alarms` measures its
+false-alarm rate on in-ODD targets of new seeds (:class:`FalseAlarmCheck`, with a Clopper–Pearson interval);
+:func:`summarize_sweep` gives the per-η medians, detection rates at the calibrated threshold and the ROC AUC of η
+against η = 0.
 
 Everything works on the posterior's *context* (the embedding of each image computed once):
 ``posterior.on_context()`` and ``contexts = posterior.context(x)`` (:class:`components.export.runtime.OnnxPosterior`),
@@ -34,13 +38,17 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from scipy.stats import binomtest
 
 from components.core.seeding import derive_seed, rng
 from components.domains.absolute import Domain, Posterior
 from components.domains.relative import OddDetector, SimplexLeastSquares, chance_baseline_gap, relate, simplex_distance
 from components.evaluate.diagnostics import roc_curve
 
-__all__ = ["Experiment", "NoiseSweep", "summarize_sweep", "experiments_by_eta"]
+__all__ = ["Experiment", "FalseAlarmCheck", "NoiseSweep", "summarize_sweep", "experiments_by_eta"]
+
+#: confidence level of the false-alarm rate's Clopper–Pearson interval
+CONFIDENCE = 0.95
 
 
 @dataclass(frozen=True)
@@ -59,6 +67,45 @@ class Experiment:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+@dataclass(frozen=True)
+class FalseAlarmCheck:
+    """The ODD decision on n in-ODD targets: how many it flagged, the rate and its exact binomial interval.
+
+    Attributes:
+        targets: the target kind (``"paper"`` or ``"fresh"``).
+        n: in-ODD targets decided on; flagged: those declared out of the ODD.
+        rate: flagged / n, the measured false-alarm rate.
+        ci_low, ci_high: its Clopper–Pearson interval at :data:`CONFIDENCE` (``scipy.stats.binomtest``).
+        alpha: the rate α the threshold was calibrated for; the promise holds when α ≥ ci_low.
+    """
+
+    targets: str
+    n: int
+    flagged: int
+    rate: float
+    ci_low: float
+    ci_high: float
+    alpha: float
+
+    @classmethod
+    def of(cls, flags: np.ndarray, alpha: float, targets: str) -> FalseAlarmCheck:
+        """From the decisions ``flags (n,)`` (True = flagged) on in-ODD targets of kind ``targets``."""
+        f = np.asarray(flags, dtype=bool).ravel()
+        if f.size == 0:
+            raise ValueError("a false-alarm check needs at least one in-ODD target")
+        k = int(f.sum())
+        ci = binomtest(k, int(f.size)).proportion_ci(confidence_level=CONFIDENCE, method="exact")
+        return cls(targets, int(f.size), k, k / f.size, float(ci.low), float(ci.high), float(alpha))
+
+    @property
+    def exceeds_alpha(self) -> bool:
+        """True when the rate is significantly above α (α below the interval): the detector breaks its promise."""
+        return self.alpha < self.ci_low
+
+    def to_dict(self) -> dict:
+        return asdict(self) | {"exceeds_alpha": self.exceeds_alpha}
 
 
 class NoiseSweep:
@@ -170,6 +217,19 @@ class NoiseSweep:
         s = derive_seed(seed, "sweep", "calibration")
         gaps = np.array([self.run(0.0, r, s, fresh).relative_gap for r in range(int(n_targets))])
         return OddDetector.calibrate(gaps, false_alarm_rate), gaps
+
+    def check_false_alarms(
+        self, detector: OddDetector, n_targets: int, seed: int, fresh: bool = False
+    ) -> tuple[FalseAlarmCheck, np.ndarray]:
+        """``detector`` on ``n_targets`` in-ODD targets (η = 0; fresh ones when ``fresh``) of new seeds — neither
+        :meth:`calibrate`'s nor :meth:`run`'s for the same ``seed`` — drawn exactly as the calibration targets are;
+        returns the check and their relative gaps."""
+        if isinstance(n_targets, bool) or not isinstance(n_targets, (int, np.integer)) or n_targets < 1:
+            raise ValueError(f"n_targets must be a positive integer, got {n_targets!r}")
+        s = derive_seed(seed, "sweep", "false-alarm-check")
+        gaps = np.array([self.run(0.0, r, s, fresh).relative_gap for r in range(int(n_targets))])
+        kind = "fresh" if fresh else "paper"
+        return FalseAlarmCheck.of(detector.decide_many(gaps), detector.false_alarm_rate, kind), gaps
 
 
 def summarize_sweep(experiments: Sequence[Experiment], detector: OddDetector) -> dict[str, dict[str, float]]:

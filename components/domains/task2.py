@@ -1,9 +1,18 @@
 """Task II (paper): a bag of images whose weather follows a known distribution → its characterization, scored.
 
-Used by the ``task2`` stage. The domain keeps every predicted parameter fixed but fog density and precipitation,
-which follow a mixture of Gaussians (``task2`` in params.yaml, :class:`~components.domains.scenarios.
-GaussianMixtureWeather`); the bag's characterization is p̂_𝒟(θ) = Σᵢ wᵢ q(θ | xᵢ) (:class:`~components.domains.
-absolute.Domain`), compared with the true distribution P_𝒟(θ).
+Used by the ``task2`` stage. As in the paper, the domain fixes every weather parameter but fog density and
+precipitation — the four other predicted ones (``task2.fixed``) and the sun azimuth (``task2.sun_azimuth_angle``) —
+and those two follow a mixture of Gaussians (``task2.modes``, :class:`~components.domains.scenarios.
+GaussianMixtureWeather`). The bag's characterization p̂_𝒟(θ) = Σᵢ wᵢ q(θ | xᵢ) (:class:`~components.domains.absolute.
+Domain`) is compared with the true distribution P_𝒟(θ), and with the uniform prior as the no-information reference:
+
+* energy distances (:func:`~components.domains.distances.energy_distance_sq`, unbiased U-statistic of D², prior-width
+  units) estimate→truth and prior→truth and their ratio, over the six parameters and over the two free ones, beside
+  truth→truth (two independent samples of the truth: D² = 0, so it shows the estimator's noise);
+* per parameter, in its physical unit: W₁ estimate→truth and prior→truth (sharpness *and* location: a broad estimate
+  scores near the prior), the width of the estimate's marginal ``hdr_level`` HDR and the share of the true mass in it;
+* the share of the true mass inside the estimate's joint ``hdr_level`` HDR, and the estimate's density at the true
+  modes.
 """
 
 from __future__ import annotations
@@ -14,15 +23,18 @@ from tqdm.auto import tqdm
 from components.core import seeding, weather
 from components.core.config import Params
 from components.domains.absolute import Domain
+from components.domains.distances import energy_distance_sq, marginal_hdr, wasserstein_1d
 from components.domains.scenarios import GaussianMixtureWeather
 from components.evaluate import diagnostics
 
-__all__ = ["DISTANCE_DRAWS", "DENSITY_DRAWS", "true_distribution", "render_bag", "task2_metrics"]
+__all__ = ["DISTANCE_DRAWS", "DENSITY_DRAWS", "HDR_BINS", "true_distribution", "render_bag", "task2_metrics"]
 
 #: draws per distribution entering the energy distances (O(n²) pairs)
 DISTANCE_DRAWS = 2000
 #: draws per distribution whose density under the estimate is evaluated (each costs one flow pass per bag image)
 DENSITY_DRAWS = 1000
+#: histogram bins over each parameter's prior range for the marginal HDRs (1 % of the range)
+HDR_BINS = 100
 
 
 def true_distribution(params: Params) -> GaussianMixtureWeather:
@@ -38,31 +50,40 @@ def true_distribution(params: Params) -> GaussianMixtureWeather:
 
 
 def render_bag(params: Params, simulator) -> tuple[np.ndarray, np.ndarray]:
-    """The bag: θ ``(n, 6)`` drawn from the true distribution and the images ``(n, H, W, 3)`` uint8 rendered under them
-    in fresh scenes (``task2.images_per_scene`` consecutive images share one)."""
+    """The bag: θ ``(n, 6)`` drawn from the true distribution and the images ``(n, H, W, 3)`` uint8 rendered under them,
+    all with the sun azimuth ``task2.sun_azimuth_angle``, in fresh scenes (``task2.images_per_scene`` consecutive
+    images share one)."""
     t = params.task2
     theta = true_distribution(params).sample(t.images, seeding.rng(params.seed, "task2", "bag"))
-    azimuth = weather.sample_azimuth(seeding.rng(params.seed, "task2", "azimuth"), t.images)
     images = np.empty((t.images, params.simulator.height, params.simulator.width, 3), dtype=np.uint8)
     for i in tqdm(range(t.images), desc="task2: render the bag", unit="image"):
         scene = seeding.derive_seed(params.seed, "scene", "task2", i // t.images_per_scene)
-        images[i] = simulator.render(weather.weather_from_theta(theta[i], azimuth[i]), scene)
+        images[i] = simulator.render(weather.weather_from_theta(theta[i], t.sun_azimuth_angle), scene)
     return theta, images
 
 
-def task2_metrics(domain: Domain, params: Params, model_name: str) -> tuple[dict, np.ndarray, np.ndarray]:
+def _energy(estimate: np.ndarray, truth: np.ndarray, truth2: np.ndarray, prior: np.ndarray, width: np.ndarray) -> dict:
+    est, pri = energy_distance_sq(estimate, truth, width), energy_distance_sq(prior, truth, width)
+    return {
+        "estimate_to_truth": est,
+        "prior_to_truth": pri,
+        "ratio": est / pri,
+        "truth_to_truth": energy_distance_sq(truth2, truth, width),
+    }
+
+
+def task2_metrics(domain: Domain, params: Params, model_name: str) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
     """Score the characterization ``domain`` of the bag against the true distribution.
 
-    Returns ``(metrics, estimate, truth)``: ``task2.samples`` draws of each (physical units) and the metrics — the
-    share of the true mass inside the estimate's ``hdr_level`` HDR, the estimate's log-density at each true mode (with
-    its typical log-density at its own draws as reference), the energy distances estimate→truth and prior→truth (all
-    six parameters scaled by the prior's widths, and the two mixture parameters alone), and the estimate's median
-    error on the fixed parameters.
+    Returns ``(metrics, estimate, truth, prior)``: ``task2.samples`` draws of each (physical units, ``(S, 6)``) and
+    the metrics (see the module docstring; README, Task II, for the layout of ``reports/task2/metrics.json``).
     """
     t = params.task2
+    box = params.box
     truth_dist = true_distribution(params)
     estimate = domain.sample(t.samples, seeding.derive_seed(params.seed, "task2", "estimate"))
     truth = truth_dist.sample(t.samples, seeding.rng(params.seed, "task2", "truth"))
+    prior = box.sample(seeding.rng(params.seed, "task2", "prior"), t.samples)
     k = min(DENSITY_DRAWS, t.samples)
     lp_estimate = domain.log_prob(estimate[:k])
     lp_truth = domain.log_prob(truth[:k])
@@ -72,22 +93,43 @@ def task2_metrics(domain: Domain, params: Params, model_name: str) -> tuple[dict
     k = min(DISTANCE_DRAWS, t.samples)
     e_sub = estimate[rng.choice(len(estimate), k, replace=False)]
     t_sub = truth[rng.choice(len(truth), k, replace=False)]
-    prior_sub = params.box.sample(rng, k)
-    free = [params.box.names.index(n) for n in truth_dist.free]
-    width = params.box.width
-    fixed_err = {n: float(abs(np.median(estimate[:, params.box.names.index(n)]) - v)) for n, v in t.fixed.items()}
+    p_sub = prior[rng.choice(len(prior), k, replace=False)]
+    t_two = truth_dist.sample(k, seeding.rng(params.seed, "task2", "truth", "second"))
+    free = [box.names.index(n) for n in truth_dist.free]
+
+    w_est, w_prior = wasserstein_1d(estimate, truth), wasserstein_1d(prior, truth)
+    per_parameter = {}
+    for i, name in enumerate(box.names):
+        hdr = marginal_hdr(estimate[:, i], truth[:, i], box.low[i], box.high[i], t.hdr_level, HDR_BINS)
+        fixed = t.fixed.get(name)
+        median = float(np.median(estimate[:, i]))
+        per_parameter[name] = {
+            "unit": box.units[i],
+            "fixed_value": fixed,
+            "estimate_median": median,
+            "median_abs_error": None if fixed is None else abs(median - fixed),
+            "wasserstein_estimate": float(w_est[i]),
+            "wasserstein_prior": float(w_prior[i]),
+            "wasserstein_ratio": float(w_est[i] / w_prior[i]),
+            "hdr_width": hdr.width,
+            "hdr_width_share": hdr.width_share,
+            "true_mass_in_hdr": hdr.mass_inside,
+        }
     metrics = {
         "model": model_name,
         "images": t.images,
+        "sun_azimuth_angle": t.sun_azimuth_angle,
+        "samples": t.samples,
         "hdr_level": t.hdr_level,
         "true_mass_in_hdr": diagnostics.hdr_mass(lp_estimate, lp_truth, t.hdr_level),
         "log_density_at_modes": [float(v) for v in lp_modes],
         "log_density_median_own_draws": float(np.median(lp_estimate)),
         "mode_density_quantile": [float(np.mean(lp_estimate <= v)) for v in lp_modes],
-        "energy_distance": diagnostics.energy_distance(e_sub, t_sub, width),
-        "energy_distance_prior": diagnostics.energy_distance(prior_sub, t_sub, width),
-        "energy_distance_free": diagnostics.energy_distance(e_sub[:, free], t_sub[:, free], width[free]),
-        "energy_distance_free_prior": diagnostics.energy_distance(prior_sub[:, free], t_sub[:, free], width[free]),
-        "fixed_median_abs_error": fixed_err,
+        "energy_distance_sq": {
+            "draws": k,
+            "all": _energy(e_sub, t_sub, t_two, p_sub, box.width),
+            "free": _energy(e_sub[:, free], t_sub[:, free], t_two[:, free], p_sub[:, free], box.width[free]),
+        },
+        "parameters": per_parameter,
     }
-    return metrics, estimate, truth
+    return metrics, estimate, truth, prior

@@ -3,117 +3,272 @@
 Used by the ``task3`` stage and its benchmark. The bags are the test images whose weather lies in a sub-box
 (``task3.bags``); every image is characterized once by the registry model (its context), and the sweep
 (:class:`~components.domains.sweep.NoiseSweep`) mixes them into targets at each noise level η.
+
+Bags share no image, by construction (:func:`split_bags`): every test image belongs to at most one bag — the first,
+in the order b0, b1, b2, …, whose sub-box holds it (b0's box is disjoint from the sources' by the config) — so an
+image inside two source sub-boxes is given to the lower-numbered source and is neither in the other's bag nor in its
+fresh pool. A source's bag is the first ``max_images`` of its own images, its fresh pool the rest of them: bag and
+pool follow the same weather (the sub-box less the earlier sources' boxes), and a fresh target holds no image of any
+bag. A configuration where that cannot hold (a sub-box with no image of its own, a pool smaller than its bag) is
+refused with an error naming the bags and the key of params.yaml.
+
+The metrics name every per-η figure by the kind of target it was measured on: ``<figure>_paper`` (the paper's
+targets, whose in-ODD part reuses the sources' images) and ``<figure>_fresh`` (other images of the sources' weather),
+in ``metrics.json`` (``eta``), in the rows of ``eta.json`` and, at step 100·η, in MLflow.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
-from components.core.config import Params
+from components.core.config import BagConfig, Params
 from components.core.paths import ProjectPaths
 from components.domains.relative import OddDetector
 from components.domains.scenarios import in_sub_box
-from components.domains.sweep import Experiment, NoiseSweep, summarize_sweep
+from components.domains.sweep import Experiment, FalseAlarmCheck, NoiseSweep, experiments_by_eta, summarize_sweep
+from components.evaluate.diagnostics import roc_curve
 from components.export.lookup import load_registered
 from components.features import cache as features
 from components.simulate import dataset
 
-__all__ = ["bag_members", "build_sweep", "task3_metrics"]
+__all__ = [
+    "KINDS",
+    "PER_ETA",
+    "BagSplit",
+    "split_bags",
+    "bag_members",
+    "build_sweep",
+    "task3_metrics",
+    "eta_rows",
+    "eta_series",
+    "roc_rows",
+]
+
+#: the target kinds: the paper's (in-ODD part = the sources' own images) and fresh ones (other images of their weather)
+KINDS = ("paper", "fresh")
+#: the per-η figures of each kind (medians over the repetitions, the share flagged, AUCs against η = 0)
+PER_ETA = (
+    "d_e_median",
+    "gap_median",
+    "baseline_gap_median",
+    "relative_gap_median",
+    "baseline_relative_gap_median",
+    "flagged_rate",
+    "auc",
+    "auc_gap",
+)
 
 
-def bag_members(params: Params, theta: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """Indices of the test images of each bag (the first ``max_images`` inside its sub-box), and of each source's
-    fresh pool (the other test images inside its sub-box), for the test split's true weathers ``theta (N, 6)``."""
-    members, pools = {}, {}
-    for name, bag in params.task3.bags.items():
-        inside = np.flatnonzero(in_sub_box(theta, bag.box))
-        if inside.size == 0:
+@dataclass(frozen=True)
+class BagSplit:
+    """Test-image indices of every bag and of every source's fresh pool, pairwise disjoint.
+
+    Attributes:
+        members: bag name (b0, b1, …) → indices ``(Nₖ,)`` into the test split.
+        pools: source name (b1, …) → the indices of its fresh pool (its own images beyond the bag).
+        in_sub_box: bag name → test images inside its sub-box, before any was given to an earlier bag.
+        given_to: bag name → {earlier bag: images of this bag's sub-box that belong to that bag} (overlaps only).
+    """
+
+    members: dict[str, np.ndarray]
+    pools: dict[str, np.ndarray]
+    in_sub_box: dict[str, int]
+    given_to: dict[str, dict[str, int]]
+
+    def sizes(self) -> dict[str, int]:
+        """Bag name → images in the bag."""
+        return {n: int(i.size) for n, i in self.members.items()}
+
+    def check_disjoint(self) -> None:
+        """``ValueError`` naming the two sets when a bag or pool shares an image with another."""
+        sets = [(f"bag {n}", i) for n, i in self.members.items()]
+        sets += [(f"the fresh pool of {n}", i) for n, i in self.pools.items()]
+        for a in range(len(sets)):
+            for b in range(a + 1, len(sets)):
+                shared = np.intersect1d(sets[a][1], sets[b][1])
+                if shared.size:
+                    raise ValueError(
+                        f"{sets[a][0]} and {sets[b][0]} share {shared.size} test image(s) (e.g. {int(shared[0])}): "
+                        "bags and fresh pools must be disjoint"
+                    )
+
+
+def _bag_order(names: Sequence[str]) -> list[str]:
+    return sorted(names, key=lambda n: int(n[1:]))
+
+
+def split_bags(bags: Mapping[str, BagConfig], theta: np.ndarray, fresh: bool) -> BagSplit:
+    """The disjoint bags and fresh pools of the test images of true weathers ``theta (N, 6)`` (module docstring).
+
+    ``bags``: ``task3.bags`` (b0 first, then the sources). ``fresh``: whether fresh targets are run, so every source
+    needs a pool at least as large as its bag. ``ValueError`` naming ``task3.bags.<name>…`` otherwise.
+    """
+    owner = np.full(np.asarray(theta).shape[0], "", dtype=object)
+    members, pools, counts, given = {}, {}, {}, {}
+    for name in _bag_order(bags):
+        cfg = bags[name]
+        inside = in_sub_box(theta, cfg.box)
+        counts[name] = int(inside.sum())
+        if counts[name] == 0:
             raise ValueError(
-                f"task3.bags.{name}: no test image lies in its sub-box {dict(bag.box)}; widen the box or "
-                "grow data.splits.test"
+                f"task3.bags.{name}.box: no test image lies in its sub-box {dict(cfg.box)}; widen the box or grow "
+                "data.splits.test"
             )
-        members[name], pools[name] = inside[: bag.max_images], inside[bag.max_images :]
-        if name != "b0" and params.task3.fresh_targets and pools[name].size < members[name].size:
+        taken = owner[inside]
+        given[name] = {b: int(np.sum(taken == b)) for b in _bag_order(set(taken) - {""})}
+        own = np.flatnonzero(inside & (owner == ""))
+        if own.size == 0:
             raise ValueError(
-                f"task3.bags.{name}: {inside.size} test images in its sub-box, too few for a fresh bag of "
-                f"{members[name].size} beside the source bag; lower max_images, grow data.splits.test, "
-                "or set task3.fresh_targets: false"
+                f"task3.bags.{name}.box: all {counts[name]} test images of its sub-box also lie in the sub-box of "
+                f"{', '.join(given[name])}, which comes first (an image in two sub-boxes belongs to the first bag): "
+                f"bags {name} and {', '.join(given[name])} cannot be disjoint; make {name}'s box overlap theirs less"
             )
-    return members, pools
+        owner[own] = name
+        size = min(cfg.max_images, own.size)
+        members[name] = own[:size]
+        if name == "b0":
+            continue
+        pools[name] = own[size:]
+        if fresh and pools[name].size < size:
+            lost = f" ({sum(given[name].values())} more of its sub-box belong to {', '.join(given[name])})"
+            raise ValueError(
+                f"task3.bags.{name}.max_images: bag {name} has {own.size} test images of its own"
+                f"{lost if given[name] else ''}, too few for a source bag of {size} and a fresh pool of at least as "
+                "many beside it; lower max_images, widen or separate the boxes, grow data.splits.test, or set "
+                "task3.fresh_targets: false"
+            )
+    split = BagSplit(members, pools, counts, {n: g for n, g in given.items() if g})
+    split.check_disjoint()
+    return split
 
 
-def build_sweep(params: Params, paths: ProjectPaths) -> tuple[NoiseSweep, dict[str, np.ndarray], str]:
+def bag_members(params: Params, theta: np.ndarray) -> BagSplit:
+    """:func:`split_bags` with the project's ``task3`` settings."""
+    return split_bags(params.task3.bags, theta, params.task3.fresh_targets)
+
+
+def build_sweep(params: Params, paths: ProjectPaths) -> tuple[NoiseSweep, BagSplit, str]:
     """The sweep of the project: the registry model's contexts of the bags' test images (from the feature cache).
     Returns the sweep, the bags' test-image indices and the model's name."""
     t = params.task3
     model = load_registered(t.model, paths.registry)  # one thread: many small calls
     test = dataset.open_split(paths.data, "test")
-    members, pools = bag_members(params, test.theta)
+    split = bag_members(params, test.theta)
     cached = features.open_features(paths.features, model.backbone.name, test)
 
     def contexts(idx: np.ndarray) -> np.ndarray:
         return model.posterior.context(features.inputs_from_cached(model.backbone, cached[idx]))
 
-    fresh = [contexts(pools[s]) for s in t.sources] if t.fresh_targets else None
+    fresh = [contexts(split.pools[s]) for s in t.sources] if t.fresh_targets else None
     sweep = NoiseSweep(
         model.posterior.on_context(),
-        contexts(members["b0"]),
-        [contexts(members[s]) for s in t.sources],
+        contexts(split.members["b0"]),
+        [contexts(split.members[s]) for s in t.sources],
         t.weights,
         t.n_points,
         fresh_pools=fresh,
     )
-    return sweep, members, model.name
+    return sweep, split, model.name
+
+
+def _eta_key(eta: float) -> str:
+    return f"{eta:g}"
 
 
 def task3_metrics(
-    params: Params,
     model_name: str,
-    members: dict[str, np.ndarray],
-    experiments: Sequence[Experiment],
-    fresh_experiments: Sequence[Experiment],
+    n_points: int,
+    weights: Sequence[float],
+    split: BagSplit,
+    experiments: Mapping[str, Sequence[Experiment]],
     detector: OddDetector,
+    calibrated_on: str,
+    check: FalseAlarmCheck,
     seconds: float,
 ) -> dict:
-    """The per-η medians, AUCs and flagged rates of the paper's targets (and of the fresh ones, which the ODD
-    decision is judged on when ``task3.fresh_targets``), with the decision's threshold and observed false-alarm rate."""
-    t = params.task3
-    fresh = t.fresh_targets
-    decided = fresh_experiments if fresh else experiments
-    paper, judged = summarize_sweep(experiments, detector), summarize_sweep(decided, detector)
-    per_eta = {}
-    for key, row in paper.items():
-        per_eta[key] = {
-            **{
-                k: row[k]
-                for k in (
-                    "d_e_median",
-                    "gap_median",
-                    "baseline_gap_median",
-                    "relative_gap_median",
-                    "baseline_relative_gap_median",
-                )
-            },
-            **({"auc": judged[key]["auc"], "auc_same_images": row["auc"]} if "auc" in row else {}),
-            "flagged_rate": judged[key]["flagged_rate"],
-        }
-        if fresh:
-            per_eta[key]["fresh"] = {k: judged[key][k] for k in ("d_e_median", "gap_median", "relative_gap_median")}
+    """``reports/task3/metrics.json``: the setting (n_W = ``n_points``, the true λ = ``weights``, bag and pool
+    sizes), the ODD decision (the target kind it was
+    calibrated on, α, rank, threshold; its false-alarm rate on the sweep's η = 0 targets and on ``check``'s targets
+    of new seeds, each with its Clopper–Pearson interval) and, per η, every figure of :data:`PER_ETA` for each
+    target kind in ``experiments`` (``kind → experiments``) as ``<figure>_<kind>``."""
+    if calibrated_on not in experiments:
+        raise ValueError(f"the detector was calibrated on {calibrated_on} targets, which the sweep did not run")
+    summaries = {kind: summarize_sweep(es, detector) for kind, es in experiments.items()}
+    per_eta: dict[str, dict] = {}
+    for eta in sorted({e.eta for es in experiments.values() for e in es}):
+        key = _eta_key(eta)
+        row: dict = {"repetitions": min(summaries[k][key]["repetitions"] for k in summaries)}
+        for kind, summary in summaries.items():
+            row |= {f"{f}_{kind}": summary[key].get(f) for f in PER_ETA}
+        per_eta[key] = row
+    in_sweep = FalseAlarmCheck.of(
+        detector.decide_many([e.relative_gap for e in experiments[calibrated_on] if e.eta == 0.0]),
+        detector.false_alarm_rate,
+        calibrated_on,
+    )
     return {
         "model": model_name,
-        "bags": {n: int(i.size) for n, i in members.items()},
-        "n_points": t.n_points,
+        "n_points": int(n_points),
+        "weights": [float(w) for w in weights],
+        "bags": {
+            name: {
+                "images": int(idx.size),
+                "in_sub_box": split.in_sub_box[name],
+                "given_to_earlier_bags": sum(split.given_to.get(name, {}).values()),
+                **({"fresh_pool": int(split.pools[name].size)} if name in split.pools else {}),
+            }
+            for name, idx in split.members.items()
+        },
+        "experiments": {kind: len(es) for kind, es in experiments.items()},
         "odd": {
             "statistic": "relative_gap",
-            "targets": "fresh" if fresh else "paper",
-            "threshold": detector.threshold,
-            "false_alarm_rate": t.false_alarm_rate,
+            "calibrated_on": calibrated_on,
+            "false_alarm_rate": detector.false_alarm_rate,
             "calibration_targets": detector.n_calibration,
-            "observed_false_alarm_rate": per_eta["0"]["flagged_rate"],
+            "rank": detector.rank,
+            "threshold": detector.threshold,
+            "false_alarms_sweep": in_sweep.to_dict(),
+            "false_alarms_new_seeds": check.to_dict(),
         },
-        "experiments": len(experiments) + len(fresh_experiments),
         "sweep_seconds": seconds,
         "eta": per_eta,
     }
+
+
+def eta_rows(metrics: Mapping) -> list[dict]:
+    """``reports/task3/eta.json``: one row per η, ``{"eta": η, "repetitions": r, "<figure>_<kind>": …}`` (the
+    figures of ``metrics["eta"]``; null where undefined: the AUCs at η = 0)."""
+    return [{"eta": float(key), **row} for key, row in metrics["eta"].items()]
+
+
+def eta_series(rows: Sequence[Mapping]) -> dict[str, dict[int, float]]:
+    """The per-η figures as series ``"<figure>_<kind>" → {round(100·η): value}`` (MLflow metrics at step 100·η)."""
+    out: dict[str, dict[int, float]] = {}
+    for row in rows:
+        step = round(100 * float(row["eta"]))
+        for name, value in row.items():
+            if name not in ("eta", "repetitions") and value is not None:
+                out.setdefault(name, {})[step] = float(value)
+    return out
+
+
+def roc_rows(experiments: Mapping[str, Sequence[Experiment]]) -> list[dict]:
+    """``reports/task3/roc.json``: the ROC curves of the relative gap, η > 0 against η = 0, per target kind, on the
+    false-positive rates the η = 0 repetitions allow (j/m, j = 0…m): rows ``{"fpr": j/m, "<kind> η=<η>": TPR}``,
+    the TPR the best threshold reaches at that false-positive rate or below."""
+    by_kind = {kind: experiments_by_eta(es, "relative_gap") for kind, es in experiments.items()}
+    m = max(len(rel[0.0]) for rel in by_kind.values())
+    grid = np.linspace(0.0, 1.0, m + 1)
+    rows = [{"fpr": float(x)} for x in grid]
+    for kind, rel in by_kind.items():
+        for eta, scores in rel.items():
+            if eta == 0.0:
+                continue
+            fpr, tpr, _ = roc_curve(rel[0.0], scores)
+            best = [float(tpr[fpr <= x + 1e-12].max()) for x in grid]
+            for row, value in zip(rows, best, strict=True):
+                row[f"{kind} η={_eta_key(eta)}"] = value
+    return rows

@@ -13,7 +13,9 @@ arrays or CPU tensors; results are numpy float64.
   region at level l. Calibrated: c(l) = l (α is uniform on [0, 1]); overconfident (too narrow): c(l) < l;
   underconfident (conservative, too wide): c(l) > l;
 * superiority of the ground truth π(i) = P̂(p̂(W | i) ≤ p̂(w* | i)): the share of drawn weathers no more
-  credible than w* (the paper's Fig. "superiority"); π ≈ 1 − α, uniform on [0, 1] for the exact posterior.
+  credible than w* (the paper's Fig. "superiority"); π ≈ 1 − α, uniform on [0, 1] for the exact posterior;
+* calibration band: the calibration error a perfectly calibrated model shows on n images by chance alone (its
+  q-quantile, simulated): an observed calibration error inside the band is calibrated within noise.
 
 Used by the ``evaluate``, ``task2`` and ``task3`` stages, and through :mod:`components.plots` by the ``train`` and
 ``variant`` stages and the ``pidc`` CLI.
@@ -28,6 +30,7 @@ __all__ = [
     "superiority",
     "expected_coverage",
     "calibration_error",
+    "calibration_band",
     "coverage_error",
     "energy_distance",
     "hdr_mass",
@@ -126,6 +129,52 @@ def calibration_error(credibility: object, levels: object | None = None) -> floa
     """
     _, dev = _deviation(credibility, levels)
     return float(np.abs(dev).max())
+
+
+def calibration_band(
+    images: int,
+    samples: int,
+    levels: object | None,
+    rng: np.random.Generator,
+    quantile: float = 0.95,
+    replicates: int = 2000,
+) -> float:
+    """The ``quantile`` of :func:`calibration_error` for a perfectly calibrated model on ``images`` images.
+
+    For the exact posterior, the ground truth is exchangeable with the ``samples`` draws of its image, so the number
+    of draws at least as dense as the truth is uniform on {0, 1, …, samples} and α(i) = K/samples (what
+    :func:`hpd_credibility` returns, ties aside): a discrete uniform, iid over images. The band simulates
+    ``replicates`` such sets of ``images`` credibilities with ``rng`` and returns the ``quantile`` of their
+    calibration error at ``levels`` (None: the supremum over every level) — the metric's own sampling distribution,
+    exact up to Monte Carlo error (±√(q(1−q)/replicates) in quantile level). For large n it approaches the
+    Kolmogorov–Smirnov quantile (1.36/√n at 95 % for ``levels=None``); the maximum over a grid of levels is a little
+    smaller.
+
+    Arguments:
+        images: n ≥ 1, images per evaluation.
+        samples: S ≥ 1, posterior draws per image.
+        levels: the credible levels of the calibration error (as given to :func:`calibration_error`), or None.
+        rng: the random stream (seeded by the caller).
+        quantile: q in (0, 1), e.g. 0.95.
+        replicates: simulated evaluations (≥ 100).
+
+    Returns:
+        the band, in [0, 1]: 95 % of perfectly calibrated models have a calibration error ≤ it (for q = 0.95).
+    """
+    if isinstance(images, bool) or int(images) != images or images < 1:
+        raise ValueError(f"images must be an integer >= 1, got {images!r}")
+    if isinstance(samples, bool) or int(samples) != samples or samples < 1:
+        raise ValueError(f"samples must be an integer >= 1, got {samples!r}")
+    if not 0.0 < float(quantile) < 1.0:
+        raise ValueError(f"quantile must be in (0, 1), got {quantile!r}")
+    if isinstance(replicates, bool) or int(replicates) != replicates or replicates < 100:
+        raise ValueError(f"replicates must be an integer >= 100, got {replicates!r}")
+    lv = None if levels is None else _levels(levels)
+    errors = np.empty(int(replicates))
+    for r in range(int(replicates)):
+        alpha = rng.integers(0, int(samples) + 1, size=int(images)) / int(samples)
+        errors[r] = calibration_error(alpha, lv)
+    return float(np.quantile(errors, float(quantile)))
 
 
 def coverage_error(credibility: object, levels: object | None = None) -> float:

@@ -27,8 +27,9 @@ CHAMPION_POINTER = Path("reports") / "task1" / "champion.json"
 
 
 def read_champion(registry: str | Path) -> dict[str, Any]:
-    """The champion pointer of ``registry`` (``<project>/reports/task1/champion.json``): ``{"model": id, "metric":
-    name, "value": v, ...}``; clear errors when absent."""
+    """The champion pointer of ``registry`` (``<project>/reports/task1/champion.json``): ``{"model": id, "rule":
+    branch, "reason": …, "metrics": {...}, "runner_up": {...}, ...}`` (:mod:`components.evaluate.champion`); clear
+    errors when absent."""
     path = Path(registry).resolve().parent / CHAMPION_POINTER
     if not path.is_file():
         raise FileNotFoundError(

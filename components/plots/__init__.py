@@ -4,8 +4,8 @@ Inputs are numpy arrays (θ in the order and physical units of :mod:`components.
 function returns a :class:`matplotlib.figure.Figure`, written with :func:`save_figure` (atomic, closes it).
 
 * Task I: :func:`marginal_histograms` (1st analysis), :func:`corner_plot` (2nd), :func:`ppc_sheet` (3rd),
-  :func:`coverage_plot` (4th), :func:`superiority_boxplot` (5th);
-* Task II: :func:`corner_compare`, :func:`image_grid`;
+  :func:`coverage_plot` (4th), :func:`superiority_boxplot` (5th), :func:`parameter_heatmaps` (per parameter);
+* Task II: :func:`corner_compare`, :func:`marginals_overlay`, :func:`image_grid`;
 * Task III: :func:`boxplots_by_level`, :func:`roc_curves`;
 * training: :func:`loss_curves`;
 * highest-density regions from samples: :func:`hdr_log_threshold` and its 2-D grid counterpart.
@@ -19,6 +19,8 @@ from components.plots.corner import corner_compare, corner_plot, corner_ranges
 from components.plots.hdr import grid_density, grid_hdr_thresholds, hdr_log_threshold, in_hdr
 from components.plots.images import image_grid, ppc_sheet
 from components.plots.marginals import marginal_hdr_histograms, marginal_histograms
+from components.plots.overlay import marginals_overlay
+from components.plots.parameters import parameter_heatmaps
 from components.plots.relative import boxplots_by_level, roc_curves
 from components.plots.training import best_epoch, loss_curves
 
@@ -34,9 +36,11 @@ __all__ = [
     "corner_ranges",
     "corner_plot",
     "corner_compare",
+    "marginals_overlay",
     "coverage_plot",
     "model_styles",
     "superiority_boxplot",
+    "parameter_heatmaps",
     "ppc_sheet",
     "image_grid",
     "loss_curves",

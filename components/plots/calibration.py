@@ -79,12 +79,18 @@ def model_styles(names: Sequence[str]) -> dict[str, dict[str, object]]:
 def coverage_plot(
     curves: Mapping[str, tuple[object, object]],
     title: str = "Expected coverage of the highest-density regions",
+    band: float | None = None,
+    band_label: str = "band of a perfectly calibrated model",
 ) -> Figure:
     """Expected coverage c(l) against the credible level l for every model, in one plot.
 
     Arguments:
         curves: model name → ``(levels (L,), coverage (L,))``, both in [0, 1] (e.g. from
             :func:`components.evaluate.diagnostics.expected_coverage`); L may differ between models.
+        band: the half-width b of the strip l ± b around the diagonal that a perfectly calibrated model stays in on
+            the same number of images (e.g. :func:`components.evaluate.diagnostics.calibration_band`, a bound on the
+            largest deviation: a curve inside the strip everywhere has a calibration error ≤ b); None: no strip.
+        band_label: the strip's legend entry.
 
     The diagonal c = l is calibration; above it a model is conservative (underconfident, its regions too
     wide), below it overconfident (too narrow). Both halves are shaded and labelled.
@@ -104,6 +110,8 @@ def coverage_plot(
             if not np.isfinite(v).all() or (v < 0).any() or (v > 1).any():
                 raise ValueError(f"curves[{name!r}]: {what} must lie in [0, 1]")
         checked[str(name)] = (lv, cov)
+    if band is not None and not (np.isfinite(band) and 0 <= band <= 1):
+        raise ValueError(f"band must be a half-width in [0, 1], got {band!r}")
     styles = model_styles(list(checked))
     fig = new_figure(8.6, 6.2)
     ax = fig.add_subplot()
@@ -111,6 +119,17 @@ def coverage_plot(
     ax.fill_between([0, 1], [0, 0], [0, 1], color="#d62728", alpha=0.07, linewidth=0)
     ax.text(0.04, 0.93, "conservative\n(underconfident)", color="#1e6b1e", fontsize=11, va="top", ha="left")
     ax.text(0.96, 0.05, "overconfident", color="#9b1c1c", fontsize=11, va="bottom", ha="right")
+    if band is not None:
+        grid = np.linspace(0.0, 1.0, 201)
+        ax.fill_between(
+            grid,
+            np.clip(grid - band, 0, 1),
+            np.clip(grid + band, 0, 1),
+            color="grey",
+            alpha=0.28,
+            linewidth=0,
+            label=f"{band_label}\n(±{band:.3f})",
+        )
     ax.plot([0, 1], [0, 1], color="black", linewidth=1, linestyle=(0, (4, 3)), label="calibrated")
     for name, (lv, cov) in checked.items():
         st = styles[name]

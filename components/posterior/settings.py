@@ -9,6 +9,7 @@ Used by the ``train`` and ``variant`` stages.
 
 from __future__ import annotations
 
+import math
 from dataclasses import fields
 from typing import TYPE_CHECKING, Any
 
@@ -18,7 +19,7 @@ from components.posterior.train import TrainingConfig
 if TYPE_CHECKING:
     from components.core.config import TrainConfig
 
-__all__ = ["flow_config", "training_config"]
+__all__ = ["flow_config", "training_config", "epochs_for", "patience_for", "hidden_for", "small_data_scale"]
 
 
 def _every_field(cls: type, settings: dict[str, Any]) -> dict[str, Any]:
@@ -30,15 +31,38 @@ def _every_field(cls: type, settings: dict[str, Any]) -> dict[str, Any]:
     return settings
 
 
-def flow_config(train_section: TrainConfig, ensemble: int | None = None) -> FlowConfig:
-    """The conditional flow of ``train.flow``; ``ensemble`` (a variant's) replaces ``train.flow.ensemble``."""
+def small_data_scale(train_section: TrainConfig, size: int) -> float:
+    """s = max(1, ``train.scale_to`` / size): how much smaller than ``scale_to`` the training set is.
+
+    Below ``scale_to`` images a model trains s× more epochs with s× the patience (an epoch of few images is few
+    optimizer steps) through a flow whose hidden widths shrink as 1/√s (fewer weights to fit): the rule measured on
+    three SBI problems with exact posteriors (``benchmarks/bench_sbi_problems.py``, BENCHMARKS.md). At and above
+    ``scale_to`` images the settings are ``train``'s as written."""
+    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+        raise ValueError(f"size must be a positive integer, got {size!r}")
+    return max(1.0, train_section.scale_to / size)
+
+
+def hidden_for(train_section: TrainConfig, size: int) -> tuple[int, ...]:
+    """``train.flow.hidden_features`` for ``size`` training images: each width w → max(32, 16·round(w/√s/16))
+    below ``scale_to`` images (never wider than w)."""
+    s = small_data_scale(train_section, size)
+    widths = tuple(train_section.flow.hidden_features)
+    if s == 1.0:
+        return widths
+    return tuple(min(w, max(32, 16 * round(w / math.sqrt(s) / 16))) for w in widths)
+
+
+def flow_config(train_section: TrainConfig, *, size: int, ensemble: int | None = None) -> FlowConfig:
+    """The conditional flow of ``train.flow`` for a model of ``size`` training images (:func:`hidden_for`);
+    ``ensemble`` (a variant's) replaces ``train.flow.ensemble``."""
     f = train_section.flow
     return FlowConfig(
         **_every_field(
             FlowConfig,
             dict(
                 transforms=f.transforms,
-                hidden_features=tuple(f.hidden_features),
+                hidden_features=hidden_for(train_section, size),
                 bins=f.bins,
                 passes=f.passes,
                 standardize=f.standardize,
@@ -48,17 +72,33 @@ def flow_config(train_section: TrainConfig, ensemble: int | None = None) -> Flow
     )
 
 
+def epochs_for(train_section: TrainConfig, size: int, *, trainable: bool) -> int:
+    """The epochs of a model trained on ``size`` images: ``min(⌈epochs·s⌉, ⌈sample_budget / size⌉)`` with s of
+    :func:`small_data_scale`; ``embedding_epochs`` and ``embedding_sample_budget`` (and no scaling, each epoch being
+    costly) for a backbone trained jointly with the flow."""
+    t = train_section
+    s = small_data_scale(t, size)
+    if trainable:
+        return max(1, min(t.embedding_epochs, math.ceil(t.embedding_sample_budget / size)))
+    return max(1, min(math.ceil(t.epochs * s), math.ceil(t.sample_budget / size)))
+
+
+def patience_for(train_section: TrainConfig, size: int) -> int:
+    """Early stopping's patience for ``size`` training images: ``⌈patience·s⌉`` (:func:`small_data_scale`)."""
+    return math.ceil(train_section.patience * small_data_scale(train_section, size))
+
+
 def training_config(
-    train_section: TrainConfig, *, trainable: bool, seed: int, balance: float | None = None
+    train_section: TrainConfig, *, size: int, trainable: bool, seed: int, balance: float | None = None
 ) -> TrainingConfig:
-    """The training settings of ``train``: ``embedding_epochs`` epochs for a backbone trained jointly with the flow
-    (``trainable``), else ``epochs``; ``seed`` is the caller's; ``balance`` (a variant's) replaces ``train.balance``."""
+    """The training settings of ``train`` for a model of ``size`` training images: :func:`epochs_for` epochs;
+    ``seed`` is the caller's; ``balance`` (a variant's) replaces ``train.balance``."""
     t = train_section
     return TrainingConfig(
         **_every_field(
             TrainingConfig,
             dict(
-                epochs=t.embedding_epochs if trainable else t.epochs,
+                epochs=epochs_for(t, size, trainable=trainable),
                 batch_size=t.batch_size,
                 lr=t.lr,
                 weight_decay=t.weight_decay,
@@ -66,7 +106,7 @@ def training_config(
                 min_lr=t.min_lr,
                 plateau_factor=t.plateau_factor,
                 plateau_patience=t.plateau_patience,
-                patience=t.patience,
+                patience=patience_for(t, size),
                 min_delta=t.min_delta,
                 clip_norm=t.clip_norm,
                 seed=seed,

@@ -1,0 +1,152 @@
+"""What each lever of the models buys: information gain and calibration of one NPE per setting, on the same images.
+
+The ablation of BENCHMARKS.md ("Models that read the images"). Every setting trains one NPE on cached backbone
+features of the pipeline (``features/<backbone>/``, so run ``dvc repro features@cues`` first) and scores it on the
+test split — test NLL, information gain over the prior, calibration error (the KS distance of the HPD credibilities
+from uniform, :func:`components.evaluate.diagnostics.calibration_error`) with the 95 % band of a perfectly calibrated
+model on as many images, signed coverage area, and per parameter the daytime median |posterior median − truth| —
+all from ``--samples`` posterior draws per test image, seeded.
+
+Levers (``--setting NAME``, several allowed):
+
+* ``cues-v1-<n>``: the 80 version-1 cues (the first 80 columns of the version-2 cache), ``n`` training images;
+* ``cues-v2-<n>``: all 241 cues;
+* ``…-e<k>``: ``k`` epochs instead of the pipeline's (``params.yaml`` ``train`` with its sample budget);
+* ``…-ens<k>``: an equal-weight ensemble of ``k`` flows.
+
+Everything else is the pipeline's (``components.posterior.settings`` from ``params.yaml``). Usage::
+
+    python benchmarks/bench_levers.py --setting cues-v1-50000-e20 cues-v2-50000-e20 cues-v2-50000-e40 \\
+        cues-v2-50000-ens3-e20 cues-v2-5000 cues-v2-20000
+
+Prints one table row and writes one JSON file per setting (``benchmarks/results/levers/``; existing ones are reused)
+and one JSON line with the machine's details.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import re
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.machine import machine_info  # noqa: E402
+from components.core.config import load_params  # noqa: E402
+from components.core.weather import PREDICTED  # noqa: E402
+from components.evaluate import diagnostics  # noqa: E402
+from components.features import cache  # noqa: E402
+from components.posterior import NPE, train  # noqa: E402
+from components.posterior.settings import flow_config, training_config  # noqa: E402
+from components.simulate import dataset  # noqa: E402
+
+_SETTING = re.compile(r"^cues-(v1|v2)-(\d+)(?:-ens(\d+))?(?:-e(\d+))?$")
+V1_COLUMNS = 80
+
+
+def parse_setting(name: str) -> dict:
+    """``cues-v2-50000-ens3-e20`` → {version, size, ensemble, epochs}; ``ValueError`` naming the grammar otherwise."""
+    m = _SETTING.match(name)
+    if not m:
+        raise ValueError(f"setting {name!r}: expected cues-(v1|v2)-<size>[-ens<k>][-e<epochs>]")
+    v, size, ens, ep = m.groups()
+    return {"version": v, "size": int(size), "ensemble": int(ens or 1), "epochs": int(ep) if ep else None}
+
+
+def run(name: str, root: Path, samples: int, seed: int) -> dict:
+    s = parse_setting(name)
+    params = load_params(root / "params.yaml")
+    splits = {k: dataset.open_split(root / params.data.root, k) for k in dataset.SPLITS}
+    cols = V1_COLUMNS if s["version"] == "v1" else None
+
+    def feats(split: dataset.Split, stop: int | None = None) -> np.ndarray:
+        return cache.open_features(root / "features", "cues", split, stop=stop)[:, :cols].astype(np.float32)
+
+    x = {"train": feats(splits["train"], s["size"]), "val": feats(splits["val"]), "test": feats(splits["test"])}
+    theta = {k: splits[k].theta[: len(v)].astype(np.float32) for k, v in x.items()}
+    fc = flow_config(params.train, size=s["size"], ensemble=s["ensemble"])
+    tc = training_config(params.train, size=s["size"], trainable=False, seed=seed)
+    if s["epochs"]:
+        tc = dataclasses.replace(tc, epochs=s["epochs"])
+    model = NPE(None, x["train"].shape[1], params.box, fc, seed=seed)
+    t0 = time.perf_counter()
+    history = train(
+        model,
+        (torch.from_numpy(x["train"]), torch.from_numpy(theta["train"])),
+        (torch.from_numpy(x["val"]), torch.from_numpy(theta["val"])),
+        tc,
+    )
+    seconds = time.perf_counter() - t0
+    model.eval()
+    xt, tt = torch.from_numpy(x["test"]), torch.from_numpy(theta["test"])
+    with torch.no_grad():
+        lp_truth = torch.cat([model.log_prob(tt[i : i + 500], xt[i : i + 500]) for i in range(0, len(xt), 500)])
+        draws, lps = [], []
+        for i in range(0, len(xt), 100):
+            d, lp = model.sample_and_log_prob(xt[i : i + 100], samples, rng=seed + i)
+            draws.append(d.numpy())
+            lps.append(lp.numpy())
+    draws, lp = np.concatenate(draws), np.concatenate(lps)  # (N, samples, 6), (N, samples)
+    cred = diagnostics.hpd_credibility(lp, lp_truth.numpy())
+    levels = diagnostics.DEFAULT_LEVELS
+    coverage = diagnostics.expected_coverage(cred, levels)
+    nll = float(-lp_truth.mean())
+    day = theta["test"][:, PREDICTED.index("sun_altitude_angle")] > 0
+    err = np.abs(np.median(draws, axis=1) - theta["test"])
+    return {
+        "setting": name,
+        **s,
+        "features": x["train"].shape[1],
+        "epochs_run": len(history.records),
+        "best_epoch": history.best_epoch,
+        "train_seconds": round(seconds, 1),
+        "test_images": len(xt),
+        "test_nll": nll,
+        "info_gain_nats": params.box.log_volume() - nll,
+        "calibration_error": diagnostics.calibration_error(cred),
+        "calibration_band": diagnostics.calibration_band(
+            len(xt), samples, None, np.random.default_rng(seed), quantile=0.95, replicates=1000
+        ),
+        "coverage_auc_gap": float(np.trapezoid(coverage - levels, levels)),
+        "day_median_abs_error": dict(zip(PREDICTED, np.median(err[day], axis=0).round(2).tolist(), strict=True)),
+        "night_median_abs_error": dict(zip(PREDICTED, np.median(err[~day], axis=0).round(2).tolist(), strict=True)),
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--setting", nargs="+", required=True, type=str)
+    p.add_argument("--root", type=Path, default=ROOT, help="the pipeline's project root (params.yaml, features/)")
+    p.add_argument("--samples", type=int, default=500, help="posterior draws per test image")
+    p.add_argument("--seed", type=int, default=2026)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "levers")
+    a = p.parse_args(argv)
+    for name in a.setting:
+        parse_setting(name)  # every name checked before any work
+    torch.set_num_threads(a.threads)
+    a.out.mkdir(parents=True, exist_ok=True)
+    print("| setting | features | epochs | train s | info gain | calibration error (band) | coverage gap |")
+    print("|---|---|---|---|---|---|---|")
+    for name in a.setting:
+        path = a.out / f"{name}.json"
+        r = json.loads(path.read_text()) if path.is_file() else run(name, a.root, a.samples, a.seed)
+        path.write_text(json.dumps(r, indent=1))
+        print(
+            f"| {name} | {r['features']} | {r['epochs_run']} | {r['train_seconds']} | {r['info_gain_nats']:.2f} | "
+            f"{r['calibration_error']:.3f} ({r['calibration_band']:.3f}) | {r['coverage_auc_gap']:+.3f} |",
+            flush=True,
+        )
+    print(json.dumps(machine_info(threads=a.threads)))
+
+
+if __name__ == "__main__":
+    main()

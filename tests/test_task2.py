@@ -1,0 +1,150 @@
+"""Task II's scores (components.domains.distances, components.domains.task2) on problems with known answers: the
+unbiased energy distance is ≈ 0 for two samples of one distribution (where the V-statistic has a positive floor) and
+matches the closed form otherwise; W₁ and the marginal HDR against exact values; a bag under a closed-form posterior
+scored sharper when the posterior is sharper; the paper's setting (every parameter fixed but two, sun azimuth too)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from components.core.config import parse_params
+from components.core.seeding import rng
+from components.domains.absolute import Domain
+from components.domains.distances import energy_distance_sq, marginal_hdr, wasserstein_1d
+from components.domains.task2 import render_bag, task2_metrics, true_distribution
+from components.evaluate.diagnostics import energy_distance as v_statistic
+from tests.conftest import micro_params
+from tests.test_domain import GaussianPosterior
+
+
+def test_energy_distance_of_two_samples_of_one_distribution_is_zero_within_noise():
+    """30 pairs of independent N(0, I₃) samples (n = m = 300): the U-statistic averages 0 within 3 standard errors;
+    the V-statistic's square sits far above 0 (its floor E‖X − X′‖(1/n + 1/m))."""
+    r = rng(0, "test", "energy", "same")
+    u, v = [], []
+    for _ in range(30):
+        a, b = r.standard_normal((300, 3)), r.standard_normal((300, 3))
+        u.append(energy_distance_sq(a, b))
+        v.append(v_statistic(a, b) ** 2)
+    u, v = np.array(u), np.array(v)
+    se = u.std(ddof=1) / np.sqrt(u.size)
+    assert abs(u.mean()) < 3 * se, (u.mean(), se)
+    assert np.any(u < 0), "unbiased: negative about half the time"
+    floor = np.sqrt(2) * 2 * np.sqrt(2 / np.pi) * (2 / 300)  # E‖X − X′‖ = √2 E χ₃ = √2 · 2√(2/π) for N(0, I₃)
+    assert v.mean() == pytest.approx(floor, rel=0.1) and v.mean() > u.mean() + 10 * se
+
+
+def test_energy_distance_matches_the_closed_form_and_scipy():
+    """1-D N(0, 1) against N(μ, 1): D² = 2 E|Z√2 + μ| − 2·2/√π with E|N(μ, 2)| = 2φ(μ/√2)√2 + μ(1 − 2Φ(−μ/√2));
+    and U = V − mean|x − x′|/(n − 1) − mean|y − y′|/(m − 1) with V = scipy.stats.energy_distance²."""
+    mu, s = 1.0, np.sqrt(2.0)
+    expected = 2 * (2 * s * stats.norm.pdf(mu / s) + mu * (1 - 2 * stats.norm.cdf(-mu / s))) - 2 * 2 / np.sqrt(np.pi)
+    r = rng(1, "test", "energy", "shift")
+    values = [energy_distance_sq(r.standard_normal((400, 1)), mu + r.standard_normal((500, 1))) for _ in range(20)]
+    assert np.mean(values) == pytest.approx(expected, abs=3 * np.std(values, ddof=1) / np.sqrt(20))
+    x, y = r.standard_normal(200), 0.5 + 2 * r.standard_normal(150)
+    within = [np.abs(z[:, None] - z[None, :]).mean() / (z.size - 1) for z in (x, y)]
+    assert energy_distance_sq(x[:, None], y[:, None]) == pytest.approx(
+        stats.energy_distance(x, y) ** 2 - sum(within), rel=1e-10
+    )
+    scaled = energy_distance_sq(np.c_[x, 10 * x], np.c_[y, 10 * y], scale=[1.0, 10.0])
+    assert scaled == pytest.approx(energy_distance_sq(np.c_[x, x], np.c_[y, y]), rel=1e-12)
+    with pytest.raises(ValueError, match="same dimension"):
+        energy_distance_sq(np.zeros((3, 2)), np.zeros((3, 1)))
+
+
+def test_wasserstein_and_marginal_hdr_against_exact_values():
+    r = rng(2, "test", "marginals")
+    a = r.uniform(0, 100, (5000, 2))
+    np.testing.assert_allclose(wasserstein_1d(a, a + [3.0, -7.5]), [3.0, 7.5], rtol=1e-12)
+    point = np.full((10, 1), 30.0)  # W₁(U(0, 100), δ₃₀) = (30² + 70²)/200 = 29
+    assert wasserstein_1d(a[:, :1], point)[0] == pytest.approx(29.0, abs=0.6)
+    est = r.normal(50, 5, 40000)
+    hdr = marginal_hdr(est, r.normal(50, 5, 40000), 0, 100, 0.95, 100)
+    assert hdr.width == pytest.approx(2 * 1.96 * 5, abs=1.5) and hdr.width_share == pytest.approx(hdr.width / 100)
+    assert hdr.mass_inside == pytest.approx(0.95, abs=0.01)
+    assert marginal_hdr(est, [50.0], 0, 100, 0.95, 100).mass_inside == 1.0
+    assert marginal_hdr(est, [80.0], 0, 100, 0.95, 100).mass_inside == 0.0
+    flat = marginal_hdr(r.uniform(0, 100, 40000), [10.0], 0, 100, 0.5, 100)
+    assert flat.width_share == pytest.approx(0.5, abs=0.011), "an estimate as broad as the prior: HDR = level"
+    with pytest.raises(ValueError, match="level"):
+        marginal_hdr(est, [1.0], 0, 100, 1.0, 100)
+
+
+def _params(**task2):
+    d = micro_params()
+    d["task2"].update(samples=2000, **task2)
+    return parse_params(d, source="params.yaml")
+
+
+@pytest.mark.parametrize("sigma", [0.5, 25.0])
+def test_task2_metrics_score_a_sharp_estimate_better_than_a_broad_one(sigma):
+    """A bag whose posteriors are N(θᵢ, σ²) around the true θᵢ (physical units): σ = 0.5 is nearly the truth — energy
+    ratio ≈ 0, W₁ = σ√(2/π) on the fixed parameters, narrow HDRs holding the truth; σ = 25 is broad — ratios
+    nearer the prior's."""
+    params = _params()
+    theta = true_distribution(params).sample(400, rng(3, "test", "task2", "bag"))
+    metrics, estimate, truth, prior = task2_metrics(Domain(GaussianPosterior(sigma), theta), params, "gauss")
+    assert estimate.shape == truth.shape == prior.shape == (2000, 6)
+    energy, per = metrics["energy_distance_sq"], metrics["parameters"]
+    assert abs(energy["all"]["truth_to_truth"]) < 0.01 and energy["all"]["prior_to_truth"] > 0.3
+    fixed = params.task2.fixed
+    assert set(per) == set(params.box.names) and all(per[n]["fixed_value"] == v for n, v in fixed.items())
+    for name in fixed:  # W₁(δ_v ⊛ N(0, σ²), δ_v) = E|N(0, σ²)| = σ√(2/π), whatever the sharpness
+        assert per[name]["wasserstein_estimate"] == pytest.approx(sigma * np.sqrt(2 / np.pi), rel=0.1), name
+        assert per[name]["true_mass_in_hdr"] == 1.0 and per[name]["median_abs_error"] < 0.2 * sigma + 0.2, name
+    if sigma < 1:
+        assert energy["all"]["ratio"] < 0.02 and energy["free"]["ratio"] < 0.05
+        assert all(per[n]["hdr_width"] <= 3 * params.box.width[params.box.names.index(n)] / 100 for n in fixed)
+        for name in ("fog_density", "precipitation"):  # the bag's own sampling noise (400 images) dominates
+            assert per[name]["wasserstein_estimate"] < 3 and per[name]["true_mass_in_hdr"] > 0.9, name
+    else:
+        assert 0.2 < energy["all"]["ratio"] < 1.0
+        assert all(per[n]["hdr_width"] > 40 for n in fixed), "broad: HDRs tens of units wide"
+
+
+class _Recorder:
+    """A simulator that records the weather it is asked to render."""
+
+    def __init__(self) -> None:
+        self.weathers: list[dict] = []
+
+    def render(self, weather: dict, scene: int) -> np.ndarray:
+        self.weathers.append(weather)
+        return np.zeros((32, 32, 3), dtype=np.uint8)
+
+
+def test_the_bag_fixes_every_parameter_but_two_the_sun_azimuth_included():
+    params = _params(sun_azimuth_angle=123.0)
+    sim = _Recorder()
+    theta, images = render_bag(params, sim)
+    assert images.shape == (16, 32, 32, 3) and len(sim.weathers) == 16
+    assert {w["sun_azimuth_angle"] for w in sim.weathers} == {123.0}
+    for name, value in params.task2.fixed.items():
+        assert {w[name] for w in sim.weathers} == {value}, name
+    assert len({w["fog_density"] for w in sim.weathers}) == 16 and len({w["precipitation"] for w in sim.weathers}) == 16
+
+
+def test_marginals_overlay_draws_fixed_parameters_as_lines(tmp_path):
+    from matplotlib.image import imread
+
+    from components import plots
+
+    params = _params()
+    truth = true_distribution(params).sample(3000, rng(5, "test", "overlay", "truth"))
+    estimate = truth + 5 * rng(5, "test", "overlay", "noise").standard_normal(truth.shape)
+    prior = params.box.sample(rng(5, "test", "overlay", "prior"), 3000)
+    fig = plots.marginals_overlay(truth, estimate, prior, box=params.box, notes=[f"note {k}" for k in range(6)])
+    fixed = [params.box.names.index(n) for n in params.task2.fixed]
+    for k, ax in enumerate(fig.axes[:6]):
+        vertical = [ln for ln in ax.get_lines() if np.ptp(ln.get_xdata()) == 0]
+        assert len(vertical) == (1 if k in fixed else 0), k
+        assert ax.get_title() == f"note {k}"
+    image = imread(plots.save_figure(fig, tmp_path / "marginals.png", dpi=50))
+    assert image.shape[0] > 200 and image[..., :3].std() > 0.02
+    with pytest.raises(ValueError, match="one string per parameter"):
+        plots.marginals_overlay(truth, estimate, prior, notes=["x"])
+    with pytest.raises(ValueError, match=r"estimate must have shape \(n, 6\)"):
+        plots.marginals_overlay(truth, estimate[:, :2], prior)

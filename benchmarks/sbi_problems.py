@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 import zlib
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
@@ -73,7 +74,7 @@ def truncated_normal(
 
 
 @dataclass(frozen=True)
-class Problem:
+class Problem(ABC):
     """A problem: a box-uniform prior over θ ∈ ℝᵈ, a simulator x | θ and the exact posterior θ | x.
 
     Attributes:
@@ -100,17 +101,17 @@ class Problem:
         """Mask ``(...)`` of θ ``(..., d)`` inside the closed box."""
         return np.all((theta >= self.low) & (theta <= self.high), axis=-1)
 
+    @abstractmethod
     def simulate(self, theta: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """x for each θ: ``(n, d) → (n, x_dim)``."""
-        raise NotImplementedError
 
+    @abstractmethod
     def log_likelihood(self, theta: np.ndarray, x: np.ndarray) -> np.ndarray:
         """log p(x | θ) for θ ``(..., d)`` and x ``(..., x_dim)`` broadcast together: ``(...)`` (−inf where impossible)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def reference_posterior(self, x: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
         """n exact draws from p(θ | x) for one x ``(x_dim,)``: ``(n, d)``, inside the box."""
-        raise NotImplementedError
 
 
 class GaussianLinearUniform(Problem):

@@ -203,6 +203,7 @@ def evaluate(params_path: str) -> dict:
     ]
     atomic_write_bytes(out / "coverage.json", json.dumps(coverage_rows).encode())
     tracking.log_task1(paths.root, params.train.experiment, results, out / "plots")
+    grid_files = [out / "plots" / f for f in ("coverage.png", "superiority.png", "parameters.png")]
     for m, v in metrics.items():
         logger.info(
             "%s: calibration error %.3f (band %.3f: %s), coverage gap %+.3f, π median %.2f, NLL %.2f, PPC %.2f",
@@ -220,19 +221,24 @@ def evaluate(params_path: str) -> dict:
         champion, runner_up = choose_champion(metrics, params.export.champion_max_calibration_error)
     except NoChampionError:
         (paths.root / CHAMPION_POINTER).unlink(missing_ok=True)  # no stale pick for task2, task3 and the CLI
-        atomic_write_bytes(out / "table.md", report.results_table(rows, None, ev.band_level).encode())
+        table = report.results_table(rows, None, ev.band_level)
+        atomic_write_bytes(out / "table.md", table.encode())
+        tracking.describe_grid(paths.root, params, test.content_hash, metrics, None, table, grid_files)
         raise
-    atomic_write_bytes(out / "table.md", report.results_table(rows, champion.model, ev.band_level).encode())
+    table = report.results_table(rows, champion.model, ev.band_level)
+    atomic_write_bytes(out / "table.md", table.encode())
+    grid_files.append(out / "table.md")
     pointer = champion_pointer(metrics, champion, runner_up)
     aliases = tracking.set_champion_alias(
         paths.root, params, metrics, champion.model, runner_up.model if runner_up else None
     )
-    pointer |= {"registered_model": tracking.registered_name(params, champion.model)}
+    pointer |= {"registered_model": tracking.registered_model(params)}
     pointer |= aliases.get(tracking.CHAMPION_ALIAS, {})
     if runner_up:
-        pointer["runner_up"] |= {"registered_model": tracking.registered_name(params, runner_up.model)}
+        pointer["runner_up"] |= {"registered_model": tracking.registered_model(params)}
         pointer["runner_up"] |= aliases.get(tracking.CHALLENGER_ALIAS, {})
     _write_json(paths.root / CHAMPION_POINTER, pointer)
+    tracking.describe_grid(paths.root, params, test.content_hash, metrics, pointer, table, grid_files)
     logger.info(
         "champion: %s (%s: %s), %s",
         champion.model,

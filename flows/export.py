@@ -41,7 +41,7 @@ def export_model(model_id: str, params_path: str) -> dict:
         "metrics": extra.get("metrics", {}),
         "data_hash": extra.get("data_hash"),
         "git_commit": tracking.git_commit(paths.root),
-        "registered_model": tracking.registered_name(params, model_id),
+        "registered_model": tracking.registered_model(params),
     }
     t0 = time.perf_counter()
     folder = export_posterior(model, paths.registry / model_id, card=card, exporter=params.export.exporter)

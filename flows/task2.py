@@ -20,7 +20,7 @@ from components import plots
 from components.core.files import atomic_write_bytes
 from components.domains import task2 as task2_
 from components.domains.absolute import Domain
-from components.export.lookup import load_registered
+from components.export.lookup import load_registered, read_champion
 from components.simulate.base import make_simulator
 from flows import tracking
 from flows.stage import open_stage, parse_stage_args
@@ -41,6 +41,16 @@ def _note(row: dict) -> str:
     )
 
 
+def _description(metrics: dict, model: str) -> str:
+    """The Task II run's description: its headline figures."""
+    energy = metrics["energy_distance_sq"]["all"]
+    return (
+        f"Task II with {model}: energy distance² estimate→truth {energy['estimate_to_truth']:.4f} vs prior→truth "
+        f"{energy['prior_to_truth']:.4f} (ratio {energy['ratio']:.3f}); {100 * metrics['true_mass_in_hdr']:.1f} % of "
+        "the true mass inside the estimate's HDR. Per parameter: metrics `task2.parameters.<parameter>.*`."
+    )
+
+
 @flow(name="task2", log_prints=True)
 def task2(params_path: str = "params.yaml") -> dict:
     """Characterize the Task II bag and compare with its true weather distribution; write reports/task2/."""
@@ -48,7 +58,9 @@ def task2(params_path: str = "params.yaml") -> dict:
     params, paths, t = stage.params, stage.paths, stage.params.task2
     out = paths.reports("task2")
     # fails early without a registry model or champion; onnxruntime may use every core (nothing else runs here)
-    model = load_registered(t.model, paths.registry, threads=os.cpu_count() or 1)
+    pointer = read_champion(paths.registry) if t.model in tracking.ALIASES else None
+    folder = tracking.registered_folder(paths.root, params, t.model, pointer)  # models:/pidc@champion
+    model = load_registered(folder or t.model, paths.registry, threads=os.cpu_count() or 1)
     _, images = render_bag(str(stage.params_file))
     contexts = model.posterior.context(model.inputs(images))  # the embedding runs once per image
     domain = Domain(model.posterior.on_context(), contexts)  # equally weighted bag
@@ -93,6 +105,8 @@ def task2(params_path: str = "params.yaml") -> dict:
         tracking.flatten_numbers(metrics, "task2"),
         {},
         [out / "metrics.json", *figures],
+        {"pidc.model_source": tracking.model_source(params, t.model)},
+        _description(metrics, model.name),
     )
     energy = metrics["energy_distance_sq"]["all"]
     stage.logger.info(

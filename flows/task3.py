@@ -11,7 +11,8 @@ images of the sources' sub-boxes. The out-of-ODD decision on the relative gap is
 seeds. Writes ``reports/task3/metrics.json`` (every per-η figure as ``<figure>_paper`` / ``<figure>_fresh``),
 ``eta.json`` (the same, one row per η: DVC plots), ``roc.json`` (ROC curves, DVC plots), ``experiments.json`` and
 plots per target kind (box plots of d_E, δ and the relative gap with the chance baseline, ROC curves); logs the
-metrics (the per-η ones at step 100·η) and plots to MLflow. Also a Prefect deployment on a schedule (prefect.yaml).
+metrics (the per-η ones at step 100·η) and plots to MLflow. The scheduled monitoring (``flows/monitor.py``) re-judges
+its calibrated ODD decision on new in-ODD targets.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from components.core.files import atomic_write_bytes
 from components.domains.sweep import Experiment, NoiseSweep, experiments_by_eta
 from components.domains.task3 import build_sweep, eta_rows, eta_series, roc_rows, task3_metrics
 from components.evaluate.diagnostics import roc_curve
+from components.export.lookup import load_registered, read_champion
 from flows import tracking
 from flows.stage import open_stage, parse_stage_args
 
@@ -82,13 +84,28 @@ def _plots(plot_dir: Path, kind: str, experiments: list[Experiment], threshold: 
     return files
 
 
+def _description(metrics: dict, kind: str) -> str:
+    """The Task III run's description: its headline figures."""
+    odd, eta = metrics["odd"]["false_alarms_new_seeds"], metrics["eta"]
+    aucs = ", ".join(f"η={k}: {v[f'auc_{kind}']:.2f}" for k, v in eta.items() if v.get(f"auc_{kind}") is not None)
+    return (
+        f"Task III with {metrics['model']}: out-of-ODD detection AUC ({kind} targets) {aucs}. Median d_E at η=0: "
+        f"{eta['0'][f'd_e_median_{kind}']:.3f} ({kind}), {eta['0']['d_e_median_paper']:.3f} (paper). False alarms on new "
+        f"in-ODD targets: {odd['flagged']} of {odd['n']} ({odd['rate']:.3f}, 95 % interval [{odd['ci_low']:.3f}, "
+        f"{odd['ci_high']:.3f}])."
+    )
+
+
 @flow(name="task3", log_prints=True)
 def task3(params_path: str = "params.yaml") -> dict:
     """Run the Task III sweep; write reports/task3/ and log to MLflow."""
     stage = open_stage(params_path)
     params, logger, t = stage.params, stage.logger, stage.params.task3
     out = stage.paths.reports("task3")
-    sweep, split, model_name = build_sweep(params, stage.paths)
+    pointer = read_champion(stage.paths.registry) if t.model in tracking.ALIASES else None
+    folder = tracking.registered_folder(stage.paths.root, params, t.model, pointer)  # models:/pidc@champion
+    model = load_registered(folder or t.model, stage.paths.registry)  # one thread: many small calls
+    sweep, split, model_name = build_sweep(params, stage.paths, model)
     logger.info(
         "task3 with %s: bags %s, fresh pools %s", model_name, split.sizes(), {n: len(p) for n, p in split.pools.items()}
     )
@@ -127,7 +144,8 @@ def task3(params_path: str = "params.yaml") -> dict:
         tracking.flatten_numbers({k: v for k, v in metrics.items() if k != "eta"}, "task3"),
         {f"task3.{name}": steps for name, steps in eta_series(rows).items()},
         [out / "metrics.json", out / "eta.json", *figures],
-        {"pidc.odd_calibrated_on": calibrated_on},
+        {"pidc.odd_calibrated_on": calibrated_on, "pidc.model_source": tracking.model_source(params, t.model)},
+        _description(metrics, calibrated_on),
     )
     odd = metrics["odd"]["false_alarms_new_seeds"]
     logger.info(

@@ -63,6 +63,7 @@ def micro_params(**overrides) -> dict:
         false_alarm_targets=20,
         false_alarm_rate=0.1,
     )
+    p["monitor"].update(images=16, samples=200, false_alarm_targets=20)  # a scheduled run in seconds
     for key, value in overrides.items():
         section, _, name = key.partition(".")
         if name:
@@ -204,19 +205,25 @@ def micro_project(tmp_path_factory, prefect_server) -> Path:
     """A micro pidc project built once with `dvc repro`: a temp git repo with the project's components/, flows/,
     dvc.yaml and prefect.yaml, params.yaml shrunk to a few tiny images and FAST_TRAINING, every stage run through
     its Prefect flow against the session's Prefect server. Shared: read it, or change a `copy_project` of it."""
-    repo = tmp_path_factory.mktemp("micro-project") / "repo"
-    repo.mkdir()
+    return build_project(tmp_path_factory.mktemp("micro-project") / "repo", prefect_server, **FAST_TRAINING)
+
+
+def build_project(repo: Path, prefect_server: str, **overrides) -> Path:
+    """A pidc project in ``repo`` built with `dvc repro`: a git repo with the project's components/, flows/, profiles/,
+    dvc.yaml, prefect.yaml and .dvcignore, params.yaml = :func:`micro_params` with ``overrides``, every stage run
+    through its Prefect flow against the Prefect server ``prefect_server`` (one server for every stage, as run.sh)."""
+    repo.mkdir(parents=True)
     for name in ("components", "flows", "profiles"):  # profiles/: a dependency of the stages (params `profile`)
         shutil.copytree(PROJECT_ROOT / name, repo / name, ignore=shutil.ignore_patterns("__pycache__"))
-    for name in ("dvc.yaml", "prefect.yaml"):
+    for name in ("dvc.yaml", "prefect.yaml", ".dvcignore"):
         if (PROJECT_ROOT / name).is_file():
             shutil.copy(PROJECT_ROOT / name, repo / name)
-    write_params(repo, **FAST_TRAINING)
+    write_params(repo, **overrides)
     dvc = [sys.executable, "-m", "dvc"]
     for cmd in (["git", "init", "-q"], dvc + ["init", "-q"], dvc + ["config", "core.analytics", "false"]):
         r = run_in(cmd, repo)
         assert r.returncode == 0, r.stdout + r.stderr
-    r = run_in(dvc + ["repro"], repo, env={"PREFECT_API_URL": prefect_server})  # one server for every stage, as run.sh
+    r = run_in(dvc + ["repro"], repo, env={"PREFECT_API_URL": prefect_server})
     if r.returncode != 0:
-        raise RuntimeError(f"`dvc repro` of the micro project failed:\n{r.stdout}\n{r.stderr}")
+        raise RuntimeError(f"`dvc repro` of the project in {repo} failed:\n{r.stdout}\n{r.stderr}")
     return repo

@@ -119,7 +119,7 @@ def test_the_rule_and_the_evaluation_size_are_validated_params():
             parse_params(q)
 
 
-def test_aliases_champion_and_challenger_move_between_registered_models(tmp_path, monkeypatch):
+def test_aliases_champion_and_challenger_move_between_versions_of_one_registered_model(tmp_path, monkeypatch):
     from flows import tracking
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
@@ -128,23 +128,27 @@ def test_aliases_champion_and_challenger_move_between_registered_models(tmp_path
     experiment = client.create_experiment("pidc-grid", artifact_location=str(tmp_path / "artifacts"))
     metrics = {m: _m(0.02, 0.03, nll) for m, nll in (("a", 20.0), ("b", 21.0), ("c", 22.0))}
     metrics["unregistered"] = _m(0.02, 0.03, 19.0)
-    for m in ("a", "b", "c"):
-        run = client.create_run(experiment, tags={"pidc.model": m})
-        name = tracking.registered_name(params, m)
-        client.create_registered_model(name)
-        client.create_model_version(name, source=str(tmp_path / m), run_id=run.info.run_id)
+    name = tracking.registered_model(params)
+    assert name == "pidc" and tracking.champion_uri(params) == "models:/pidc@champion"
+    client.create_registered_model(name)
+    runs = {}
+    for m in ("a", "b", "c", "a"):  # a is exported twice: its newest version is the one that counts
+        runs[m] = client.create_run(experiment, tags={"pidc.model": m}).info.run_id
+        client.create_model_version(name, source=str(tmp_path / m), run_id=runs[m], tags={"pidc.model": m})
+    assert tracking.registered_versions(tmp_path, params) == {"a": "4", "b": "2", "c": "3"}
 
     found = tracking.set_champion_alias(tmp_path, params, metrics, "a", "b")
     assert found == {
-        "champion": {"version": "1", "uri": "models:/pidc-a@champion"},
-        "challenger": {"version": "1", "uri": "models:/pidc-b@challenger"},
+        "champion": {"version": "4", "uri": "models:/pidc@champion"},
+        "challenger": {"version": "2", "uri": "models:/pidc@challenger"},
     }
-    version = client.get_model_version_by_alias("pidc-b", "challenger")
+    version = client.get_model_version_by_alias(name, "challenger")
     assert float(version.tags["task1.test_nll"]) == 21.0 and version.tags["task1.within_band"] == "1"
+    roles = {m: client.get_run(r).data.tags["pidc.role"] for m, r in runs.items()}
+    assert roles == {"a": "champion", "b": "challenger", "c": "candidate"}
     found = tracking.set_champion_alias(tmp_path, params, metrics, "c", "unregistered")  # the next evaluation
-    assert set(found) == {"champion"}
-    aliases = {m: set(client.get_registered_model(f"pidc-{m}").aliases) for m in ("a", "b", "c")}
-    assert aliases == {"a": set(), "b": set(), "c": {"champion"}}, "each alias on one model at most"
+    assert set(found) == {"champion"} and found["champion"]["version"] == "3"
+    assert client.get_registered_model(name).aliases == {"champion": 3}, "the challenger alias left with no holder"
 
     result = {
         "model": "a",

@@ -171,6 +171,9 @@ MISSING = [
     "task3.bags.b1.max_images",
     "evaluate.samples",
     "simulator.carla.fov",
+    "monitor",
+    "monitor.alarm_level",
+    "monitor.false_alarm_targets",
 ]
 
 
@@ -234,6 +237,12 @@ def test_unknown_key_is_named():
         (lambda d: d["task3"].update(etas=[0.5, 1.0]), r"etas must contain 0"),
         (lambda d: d["task3"]["bags"].pop("b2"), r"bags must be b0 \(out of the ODD\), b1, b2"),
         (lambda d: d["task3"]["bags"]["b1"]["box"].update(fog=[0, 1]), r"bags\.b1\.box: prior box: unknown"),
+        (lambda d: d["monitor"].update(models="best"), r"monitor\.models: Input should be 'champion' or 'all'"),
+        (lambda d: d["monitor"].update(samples=10), r"monitor\.samples: Input should be greater than or equal to 100"),
+        (lambda d: d["monitor"].update(alarm_level=1.0), r"monitor\.alarm_level: Input should be less than 1"),
+        (lambda d: d["monitor"].update(false_alarm_targets=-1), r"monitor\.false_alarm_targets"),
+        (lambda d: d["monitor"].update(source=" recorded/"), r"monitor\.source: .*without surrounding spaces"),
+        (lambda d: d["monitor"].update(images=0), r"monitor\.images: Input should be greater than 0"),
     ],
 )
 def test_bad_values_are_named(edit, message):

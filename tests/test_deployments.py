@@ -1,33 +1,61 @@
 """The scheduled deployments of prefect.yaml end to end, as the README runs them by hand: a real Prefect server,
-a `process` work pool and a worker, `prefect deploy` from the file, a run triggered with `prefect deployment run`
-and executed by the worker on a copy of the micro project, and the schedules the server registered."""
+a `process` work pool and a worker, `prefect deploy` from the file, runs triggered with `prefect deployment run` and
+executed by the worker in a project built with `dvc repro`, and the schedules the server registered.
+
+The deployments monitor (flows/monitor.py): each run judges the registered models on new draws of its date, writes
+reports/monitoring/<date>/ and one MLflow run in the monitoring experiment, leaves the DVC pipeline as it was, and fails
+on an alarm. The project is the micro project's params with one informative model (cues on 2 000 images, calibrated
+within its band), so that a healthy run completes and a run on recorded images with wrong labels fails."""
 
 from __future__ import annotations
 
+import csv
+import datetime as dt
 import json
 import os
 import re
-import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import httpx
+import mlflow
 import numpy as np
 import psutil
 import pytest
 import yaml
 
-from components.core.config import PROJECT_ROOT
-from tests.conftest import copy_project
+from components.core import weather
+from components.core.config import PROJECT_ROOT, load_params
+from components.monitor import draws
+from components.simulate.contact_sheet import save_png
+from components.simulate.procedural import ProceduralSimulator
+from tests.conftest import build_project, run_in
 
 FINAL = {"COMPLETED", "FAILED", "CRASHED", "CANCELLED"}
-OUTPUTS = {
-    "flows/evaluate.py:evaluate": "reports/task1/metrics.json",
-    "flows/task3.py:task3": "reports/task3/metrics.json",
-}
 RUN_TIMEOUT_S = 300
+#: one model informative enough to notice wrong labels and calibrated within its band (~95 s of `dvc repro`); the alarm
+#: level 0.999 keeps a healthy run from failing by chance (each check's false alarms ≤ 0.1 %)
+MONITORED_PROJECT = {
+    "data.splits": {"train": 2000, "val": 200, "test": 120},
+    "data.shard_size": 500,
+    "backbones": {"names": ["cues"], "pretrained_dir": None, "batch_size": 256},
+    "train.sizes": [2000],
+    "train.epochs": 20,
+    "train.scale_to": 8,
+    "train.variants": {},
+    "train.flow": {
+        "transforms": 2,
+        "hidden_features": [32, 32],
+        "bins": 8,
+        "passes": 2,
+        "ensemble": 1,
+        "standardize": True,
+    },
+    "monitor.images": 32,
+    "monitor.alarm_level": 0.999,
+}
 
 # Loaded by every Python process the worker starts (through PYTHONPATH): at exit, records which source files of
 # code outside the Python installation (the project's components/ and flows/) the process imported.
@@ -94,41 +122,79 @@ def _stop(proc: subprocess.Popen) -> None:
             pass
 
 
-def _wait_until_final(api: httpx.Client, run_id: str, worker_log: Path) -> dict:
+def _wait_until_final(api: httpx.Client, run_id: str, worker_log: Path, expected: str) -> dict:
+    """The flow run once final; the test fails with its logs and the worker's when it is not in state ``expected``."""
     deadline = time.monotonic() + RUN_TIMEOUT_S
     while True:
         run = api.get(f"/flow_runs/{run_id}").raise_for_status().json()
         if run["state"]["type"] in FINAL or time.monotonic() > deadline:
             break
         time.sleep(1)
-    if run["state"]["type"] != "COMPLETED":
+    if run["state"]["type"] != expected:
         logs = api.post(
             "/logs/filter", json={"logs": {"flow_run_id": {"any_": [run_id]}}, "sort": "TIMESTAMP_DESC", "limit": 40}
         ).json()
         log_text = "\n".join(f"{entry['timestamp']} {entry['message']}" for entry in reversed(logs))
         worker_text = worker_log.read_text(errors="replace")[-6000:]
         pytest.fail(
-            f"flow run {run['name']} ({run_id}) is {run['state']['type']} after {RUN_TIMEOUT_S} s at most: "
-            f"{run['state'].get('message')}\n--- flow run logs ---\n{log_text}\n--- worker log ---\n{worker_text}"
+            f"flow run {run['name']} ({run_id}) is {run['state']['type']} (expected {expected}) after "
+            f"{RUN_TIMEOUT_S} s at most: {run['state'].get('message')}\n--- flow run logs ---\n{log_text}\n"
+            f"--- worker log ---\n{worker_text}"
         )
     return run
 
 
+def _recorded_with_wrong_labels(project: Path, folder: Path, n: int) -> Path:
+    """A recorded folder (PNGs + labels.csv) of ``n`` new images of the project's simulator, each labelled with the
+    weather of the next image (every label wrong, their distribution the prior's)."""
+    params = load_params(project / "params.yaml")
+    simulator = ProceduralSimulator(params.simulator.height, params.simulator.width)
+    draw = draws.simulated_draw(simulator, params, 4242, n)
+    folder.mkdir(parents=True)
+    with open(folder / "labels.csv", "w", newline="") as f:
+        out = csv.writer(f)
+        out.writerow(["image", *weather.PREDICTED])
+        for i, (image, label) in enumerate(zip(draw.images, np.roll(draw.theta, 1, axis=0), strict=True)):
+            save_png(folder / f"frame_{i:03d}.png", image)
+            out.writerow([f"frame_{i:03d}.png", *(f"{v:.4f}" for v in label)])
+    return folder
+
+
+@pytest.fixture(scope="module")
+def monitored_project(tmp_path_factory, prefect_server) -> Path:
+    """A project built with `dvc repro` whose registered champion is worth monitoring (MONITORED_PROJECT)."""
+    return build_project(tmp_path_factory.mktemp("monitored-project") / "repo", prefect_server, **MONITORED_PROJECT)
+
+
+def _dvc_status(project: Path) -> str:
+    r = run_in([sys.executable, "-m", "dvc", "status"], project)
+    assert r.returncode == 0, r.stdout + r.stderr
+    return r.stdout.strip()
+
+
+def _monitoring_run(client: mlflow.MlflowClient, experiment: str, flow_run_id: str):
+    """The MLflow run of a flow run in the monitoring experiment, found by its tag."""
+    exp = client.get_experiment_by_name(experiment)
+    assert exp is not None, f"no MLflow experiment {experiment!r}"
+    runs = client.search_runs([exp.experiment_id], f"tags.`pidc.prefect_flow_run` = '{flow_run_id}'")
+    assert len(runs) == 1, [r.info.run_name for r in runs]
+    return runs[0]
+
+
 @pytest.mark.slow
-def test_prefect_yaml_deployments_run_on_a_process_worker(micro_project, prefect_server, tmp_path):
+def test_prefect_yaml_deployments_monitor_on_a_process_worker(monitored_project, prefect_server, tmp_path):
     spec = yaml.safe_load((PROJECT_ROOT / "prefect.yaml").read_text())
-    project = copy_project(
-        micro_project, tmp_path / "project"
-    ).resolve()  # the runs write into it: the shared one stays as built
-    shutil.copy(PROJECT_ROOT / "prefect.yaml", project / "prefect.yaml")  # the file under test, deployed from the root
+    project = monitored_project.resolve()
+    assert (project / "prefect.yaml").read_text() == (PROJECT_ROOT / "prefect.yaml").read_text()
     wanted = spec["deployments"]
-    present = [d for d in wanted if (project / d["entrypoint"].partition(":")[0]).is_file()]
-    assert "flows/evaluate.py:evaluate" in [d["entrypoint"] for d in present]
+    assert {d["entrypoint"] for d in wanted} == {"flows/monitor.py:monitor"}
+    assert sorted(d["parameters"]["models"] for d in wanted) == ["all", "champion"]
     pools = {d["work_pool"]["name"] for d in wanted}
     assert len(pools) == 1, pools
     pool = pools.pop()
-    for d in present:  # what the runs must write: gone before they run
-        (project / OUTPUTS[d["entrypoint"]]).unlink(missing_ok=True)
+    assert _dvc_status(project) == "Data and pipelines are up to date."
+    params = load_params(project / "params.yaml")
+    wrong = _recorded_with_wrong_labels(project, tmp_path / "recorded", params.monitor.images)
 
     path = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
     env = {**os.environ, "PREFECT_API_URL": prefect_server, "PATH": path}
@@ -158,23 +224,22 @@ def test_prefect_yaml_deployments_run_on_a_process_worker(micro_project, prefect
             start_new_session=True,
         )
     try:
-        # deploy as the README does, from the project root with PIDC_PROJECT set (flows/task3.py may not exist yet)
-        selection = ["--all"] if present == wanted else [a for d in present for a in ("--name", d["name"])]
-        _prefect(["deploy", *selection, "--no-prompt"], project, {**env, "PIDC_PROJECT": str(project)})
+        # deploy as the README does, from the project root with PIDC_PROJECT set
+        _prefect(["deploy", "--all", "--no-prompt"], project, {**env, "PIDC_PROJECT": str(project)})
 
         with httpx.Client(base_url=prefect_server, timeout=30) as api:
-            names = [d["name"] for d in present]
+            names = [d["name"] for d in wanted]
             deployed = (
                 api.post("/deployments/filter", json={"deployments": {"name": {"any_": names}}})
                 .raise_for_status()
                 .json()
             )
-            by_entrypoint = {d["entrypoint"]: d for d in deployed}
-            assert sorted(by_entrypoint) == sorted(d["entrypoint"] for d in present)
-            for want in present:
-                got = by_entrypoint[want["entrypoint"]]
-                assert got["name"] == want["name"] and got["work_pool_name"] == pool
-                assert got["parameters"] == want["parameters"] == {"params_path": "params.yaml"}
+            by_name = {d["name"]: d for d in deployed}
+            assert sorted(by_name) == sorted(names)
+            for want in wanted:
+                got = by_name[want["name"]]
+                assert got["entrypoint"] == want["entrypoint"] and got["work_pool_name"] == pool
+                assert got["parameters"] == want["parameters"]
                 # the path of the checkout it was deployed from, resolved at deploy time
                 assert got["pull_steps"] == [
                     {"prefect.deployments.steps.set_working_directory": {"directory": str(project)}}
@@ -185,38 +250,89 @@ def test_prefect_yaml_deployments_run_on_a_process_worker(micro_project, prefect
                 assert schedules == [(s["cron"], s["timezone"], s.get("active", True)) for s in want["schedules"]]
                 assert schedules and all(cron and tz for cron, tz, _ in schedules)
 
+            # by hand, as the README shows; the worker runs them side by side
+            triggers = {
+                "nightly": ["monitor/nightly"],
+                "weekly": ["monitor/weekly"],
+                "wrong-labels": [
+                    "monitor/nightly",
+                    "--params",
+                    json.dumps({"source": str(wrong), "date": "2000-01-02"}),
+                ],
+            }
             run_ids = {}
-            for want in present:  # by hand, as the README shows; the worker runs them side by side
-                flow_name = (
-                    api.get(f"/flows/{by_entrypoint[want['entrypoint']]['flow_id']}").raise_for_status().json()["name"]
-                )
-                out = _prefect(["deployment", "run", f"{flow_name}/{want['name']}"], project, env)
+            for key, args in triggers.items():
+                out = _prefect(["deployment", "run", *args], project, env)
                 found = re.search(r"UUID: ([0-9a-f-]{36})", out)
                 assert found, out
-                run_ids[want["entrypoint"]] = found.group(1)
-            for entrypoint, run_id in run_ids.items():
-                run = _wait_until_final(api, run_id, worker_log)
-                assert run["deployment_id"] == by_entrypoint[entrypoint]["id"] and run["parameters"] == {
-                    "params_path": "params.yaml"
-                }
-                assert (project / OUTPUTS[entrypoint]).is_file(), (
-                    f"{entrypoint} completed without writing {OUTPUTS[entrypoint]}"
-                )
+                run_ids[key] = found.group(1)
+            runs = {
+                key: _wait_until_final(api, run_id, worker_log, "FAILED" if key == "wrong-labels" else "COMPLETED")
+                for key, run_id in run_ids.items()
+            }
         _wait_for_flow_run_processes(worker)
     finally:
         _stop(worker)
 
-    metrics = json.loads((project / "reports/task1/metrics.json").read_text())
-    assert set(metrics) == set(json.loads((micro_project / "reports/task1/metrics.json").read_text()))
-    assert all(np.isfinite(m["test_nll"]) for m in metrics.values())
+    message = runs["wrong-labels"]["state"]["message"]
+    assert "MonitoringAlarm" in message and "calibration alarm: cues-2000" in message, message
+
+    client = mlflow.MlflowClient(tracking_uri=f"sqlite:///{project / 'mlflow.db'}")
+    champion = client.get_model_version_by_alias(params.export.registered_model, "champion")
+    version = str(champion.version)
+    for key, run in runs.items():
+        assert run["deployment_id"] == by_name[triggers[key][0].partition("/")[2]]["id"]
+        # the run's date: the one given, else the UTC date of its scheduled start
+        given = run["parameters"].get("date")
+        expected = dt.datetime.fromisoformat(run["expected_start_time"]).astimezone(dt.UTC).date()
+        day = given or expected.isoformat()
+        which = run["parameters"]["models"]
+        report_dir = project / "reports" / "monitoring" / day / which
+        report = json.loads((report_dir / "metrics.json").read_text())
+        assert (report_dir / "coverage.png").stat().st_size > 0
+        assert report["date"] == day and report["models_monitored"] == which
+        assert report["images"] == params.monitor.images and report["samples"] == params.monitor.samples
+        model = report["models"]["cues-2000"]
+        assert model["registered_version"] == version and "champion" in model["aliases"]
+        assert model["calibration_band"] == report["calibration_band"] > 0
+        assert (
+            (model["calibration_error"] > model["calibration_band"])
+            == (key == "wrong-labels")
+            == bool(report["alarms"])
+        )
+        if key == "wrong-labels":
+            assert report["source"] == str(wrong) and report["alarms"][0].startswith("calibration alarm: cues-2000")
+        else:
+            odd = report["odd"]
+            assert odd["model"] == "cues-2000" and odd["n"] == params.monitor.false_alarm_targets
+            assert odd["interval_low"] <= odd["flagged"] <= odd["interval_high"] and not odd["alarm"]
+
+        logged = _monitoring_run(client, params.monitor.experiment, run["id"])
+        assert logged.info.run_name == f"monitor-{day}" + ("" if which == "champion" else "-all")
+        assert logged.info.status == ("FAILED" if key == "wrong-labels" else "FINISHED")
+        tags = logged.data.tags
+        assert tags["pidc.date"] == day and tags["pidc.model"] == "cues-2000"
+        assert tags["pidc.registered_version"] == version and tags["pidc.models_monitored"] == which
+        assert logged.data.metrics["task1.champion.calibration_error"] == model["calibration_error"]
+        history = client.get_metric_history(logged.info.run_id, "task1.cues-2000.calibration_error")
+        midnight = dt.datetime.fromisoformat(day).replace(tzinfo=dt.UTC)
+        assert [(m.step, m.timestamp) for m in history] == [
+            ((midnight.date() - dt.date(1970, 1, 1)).days, int(midnight.timestamp() * 1000))
+        ]
+        assert {a.path for a in client.list_artifacts(logged.info.run_id, "monitoring")} == {
+            "monitoring/metrics.json",
+            "monitoring/coverage.png",
+        }
+
+    # the pipeline is as it was: reports/monitoring and the MLflow store are no DVC output nor dependency
+    assert _dvc_status(project) == "Data and pipelines are up to date."
 
     # the flow runs imported the project's own components/ and flows/, not the editable install's (PROJECT_ROOT)
     records = [json.loads(p.read_text()) for p in (probe / "records").glob("*.json")]
     for r in records:
         elsewhere = {n: f for n, f in r["modules"].items() if not f.startswith(str(project) + os.sep)}
         assert not elsewhere, f"a process of the worker imported code from outside the project: {elsewhere}"
-    for entrypoint in run_ids:
-        script = str(project / entrypoint.partition(":")[0])
-        runs = [r for r in records if script in r["modules"].values()]
-        assert runs, f"no process of the worker imported {script}: {[sorted(r['modules']) for r in records]}"
-        assert all(r["cwd"] == str(project) and {"components", "flows"} <= set(r["modules"]) for r in runs), runs
+    script = str(project / "flows" / "monitor.py")
+    flow_runs = [r for r in records if script in r["modules"].values()]
+    assert len(flow_runs) >= len(run_ids), [sorted(r["modules"]) for r in records]
+    assert all(r["cwd"] == str(project) and {"components", "flows"} <= set(r["modules"]) for r in flow_runs), flow_runs

@@ -129,28 +129,6 @@ def test_bad_inputs_name_the_problem() -> None:
         expected_coverage(np.array([0.5]), [2.0])
 
 
-def test_energy_distance_matches_scipy_in_one_dimension_and_separates_distributions():
-    from scipy.stats import energy_distance as scipy_energy
-
-    from components.evaluate.diagnostics import energy_distance
-
-    r = np.random.default_rng(0)
-    a, b = r.normal(0, 1, (400, 1)), r.normal(0.5, 2, (300, 1))
-    assert energy_distance(a, b) == pytest.approx(scipy_energy(a[:, 0], b[:, 0]), rel=1e-10)
-    same = energy_distance(r.normal(size=(800, 3)), r.normal(size=(800, 3)))
-    shifted = energy_distance(r.normal(size=(800, 3)), r.normal(size=(800, 3)) + [1.0, 0, 0])
-    assert same < 0.15 < 0.5 < shifted
-    # scaling each coordinate: the distance in units of the scale
-    x, y = r.normal(size=(300, 2)) * [100, 1], (r.normal(size=(300, 2)) + [0, 1]) * [100, 1]
-    assert energy_distance(x, y, scale=[100, 1]) == pytest.approx(energy_distance(x / [100, 1], y / [100, 1]))
-    with pytest.raises(ValueError, match="same dimension"):
-        energy_distance(a, r.normal(size=(5, 2)))
-    with pytest.raises(ValueError, match="finite samples"):
-        energy_distance(np.full((3, 1), np.nan), a)
-    with pytest.raises(ValueError, match="scale must be positive"):
-        energy_distance(a, b, scale=[0.0])
-
-
 def test_hdr_mass_is_the_level_when_the_truth_is_the_estimate():
     """P = p̂ = N(0, I₃): the share of P's draws inside p̂'s l-HDR is l (binomial tolerance); a shifted P has less."""
     from scipy.stats import multivariate_normal

@@ -117,9 +117,32 @@ def test_dvc_repro_pipeline_in_a_temp_git_repo(micro_project, tmp_path, prefect_
     for name in [f"{p}-{kind}.png" for p in ("d_e", "gap", "relative-gap", "roc") for kind in ("paper", "fresh")]:
         assert (repo / "reports/task3/plots" / name).stat().st_size > 5000, name
 
+    # MLflow: Task II and III runs in the grid's experiment, nested under the champion's run, loaded by its alias
+    import mlflow
+
+    client = mlflow.MlflowClient(f"sqlite:///{repo / 'mlflow.db'}")
+    experiment = client.get_experiment_by_name("pidc-grid")
+    for task, title in (("task2", "Task II with"), ("task3", "Task III with")):
+        (run,) = client.search_runs([experiment.experiment_id], f"tags.`pidc.task` = '{task}'")
+        tags = run.data.tags
+        assert (
+            tags["pidc.model_source"] == "models:/pidc@champion" and tags["pidc.evaluated_model"] == champion["model"]
+        )
+        assert client.get_run(tags["mlflow.parentRunId"]).data.tags["pidc.model"] == champion["model"]
+        assert tags["mlflow.note.content"].startswith(f"{title} {champion['model']}") and run.inputs.dataset_inputs
+
+    # `dvc metrics show`: one row per model, the same keys in each
+    dvc = [sys.executable, "-m", "dvc"]
+    r = run_in(dvc + ["metrics", "show", "--json"], repo)
+    assert r.returncode == 0, r.stdout + r.stderr
+    shown = json.loads(r.stdout)
+    (files,) = [v["data"] for v in shown.values()]
+    rows = {Path(f).stem: v["data"] for f, v in files.items()}
+    assert set(rows) == set(task1) and all(f.startswith("reports/task1/models/") for f in files), sorted(files)
+    assert len({tuple(sorted(v)) for v in rows.values()}) == 1, "the same keys in every row"
+
     # the rest changes the project: on a copy, so the shared micro project stays as built
     repo = copy_project(micro_project, tmp_path / "repo")
-    dvc = [sys.executable, "-m", "dvc"]
     server = {"PREFECT_API_URL": prefect_server}
     r = run_in(dvc + ["repro"], repo, env=server)
     assert r.returncode == 0 and "Data and pipelines are up to date" in (r.stdout + r.stderr), r.stdout + r.stderr

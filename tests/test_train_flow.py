@@ -83,7 +83,7 @@ def test_bad_grid_cell_is_named(project):
         train_model("resnet50", 8, str(params))
 
 
-def test_export_evaluate_champion(project, monkeypatch):
+def test_export_evaluate_champion(project, monkeypatch, capsys):
     """A 2 × 2 grid and a variant: exported to registry/ and the MLflow Model Registry; Task I on the exported models
     (every metric per model, the plots, the metrics in each model's MLflow run); the champion alias and pointer;
     ``models:/<name>@champion`` loads and runs."""
@@ -119,7 +119,7 @@ def test_export_evaluate_champion(project, monkeypatch):
     variant = train_model("cues", 16, str(grid), "balanced")  # the calibrated variant beside the grid
     assert (folder / "models/cues-16-balanced/model.pt").is_file()
     exported = export_model("cues-16-balanced", str(grid))
-    assert exported["name"] == "pidc-cues-16-balanced" and exported["version"] == "1"
+    assert exported["name"] == "pidc" and exported["version"] == "5", "the fifth version of the one registered model"
 
     # the registry folder: card with what the issue names; the runtime agrees with the torch model
     card = json.loads((folder / "registry/cnn-16/card.json").read_text())
@@ -160,16 +160,30 @@ def test_export_evaluate_champion(project, monkeypatch):
     )[0]
     assert run.data.metrics["task1.calibration_error"] == pytest.approx(metrics["cues-8"]["calibration_error"])
 
-    # the MLflow Model Registry: one name per model, versions tagged with their metrics, the champion alias
+    # the experiment opens in the UI's model-training view; every run names the data it saw (dataset input)
+    assert exp.tags["mlflow.experimentKind"] == "custom_model_development"
+    inputs = run.inputs.dataset_inputs
+    assert len(inputs) == 1 and inputs[0].dataset.name == "weather-images-32x32"
+    manifest = json.loads((folder / "data/manifest.json").read_text())
+    assert inputs[0].dataset.digest == manifest["content_hash"][:36]
+    input_tags = {t.key: t.value for t in inputs[0].tags}
+    assert input_tags["mlflow.data.context"] == "training" and input_tags["images_used"] == "8"
+    assert {k: int(v) for k, v in input_tags.items() if k.startswith("split.")} == {
+        f"split.{k}": v["count"] for k, v in manifest["splits"].items()
+    }
+
+    # the MLflow Model Registry: one registered model, a version per exported model tagged with its id and metrics
     names = {m.name for m in client.search_registered_models()}
-    assert names == {f"pidc-{m}" for m in metrics}
+    assert names == {"pidc"}
+    tagged = {v.tags["pidc.model"] for v in client.search_model_versions("name = 'pidc'")}
+    assert tagged == set(metrics)
     # the champion rule (components.evaluate.champion): lowest test NLL within the band, else below the ceiling
     eligible = [m for m in metrics if metrics[m]["within_band"]]
     ceiling = yaml.safe_load(grid.read_text())["export"]["champion_max_calibration_error"]
     eligible = eligible or [m for m in metrics if metrics[m]["calibration_error"] <= ceiling]
     best = min(sorted(eligible), key=lambda m: metrics[m]["test_nll"])
     champion = json.loads((folder / "reports/task1/champion.json").read_text())
-    assert champion["model"] == best and champion["uri"] == f"models:/pidc-{best}@champion"
+    assert champion["model"] == best and champion["uri"] == "models:/pidc@champion"
     assert (
         champion["rule"] in ("within_band", "ceiling") and champion["metrics"]["test_nll"] == metrics[best]["test_nll"]
     )
@@ -177,9 +191,8 @@ def test_export_evaluate_champion(project, monkeypatch):
     assert set(rows) == set(metrics) and len({tuple(r) for r in rows.values()}) == 1, "one row per model, same keys"
     parameters = json.loads((folder / "reports/task1/parameters.json").read_text())
     assert sum(parameters["cnn-8"][s]["fog_density"]["images"] for s in ("day", "night")) == 8
-    holders = [n for n in names if "champion" in client.get_registered_model(n).aliases]
-    assert holders == [f"pidc-{best}"], "exactly one registered model holds the alias"
-    version = client.get_model_version_by_alias(f"pidc-{best}", "champion")
+    version = client.get_model_version_by_alias("pidc", "champion")
+    assert version.tags["pidc.model"] == best
     assert float(version.tags["task1.calibration_error"]) == pytest.approx(metrics[best]["calibration_error"], rel=1e-5)
     assert (
         "train.test_nll" in version.tags
@@ -188,6 +201,38 @@ def test_export_evaluate_champion(project, monkeypatch):
             [exp.experiment_id], f"tags.`pidc.model` = '{best}'", order_by=["attributes.start_time DESC"]
         )[0].info.run_id
     )
+
+    # the grid run carries the cross-model figures and names the champion; each model run describes itself
+    parent = client.get_run(run.data.tags["mlflow.parentRunId"])
+    assert parent.data.tags["pidc.champion"] == best
+    assert parent.data.tags["mlflow.note.content"].startswith(f"Champion: {best} — ")
+    assert client.get_experiment(exp.experiment_id).tags["mlflow.note.content"].startswith(f"Champion: {best} — ")
+    assert {
+        r.info.run_name
+        for r in client.search_runs([exp.experiment_id], f"tags.`mlflow.parentRunId` = '{parent.info.run_id}'")
+    } >= set(metrics), "every model run directly under the grid run"
+    assert parent.data.metrics["champion.test_nll"] == pytest.approx(metrics[best]["test_nll"])
+    artifacts = {f.path for f in client.list_artifacts(parent.info.run_id, "task1")}
+    assert artifacts >= {"task1/coverage.png", "task1/superiority.png", "task1/parameters.png", "task1/table.md"}
+    best_run = client.get_run(version.run_id)
+    assert best_run.data.tags["pidc.role"] == "champion"
+    assert best_run.data.tags["mlflow.note.content"].startswith(f"Champion: {best} — ")
+    others = [
+        client.get_run(v.run_id) for v in client.search_model_versions("name = 'pidc'") if v.run_id != version.run_id
+    ]
+    assert {r.data.tags["pidc.role"] for r in others} <= {"challenger", "candidate"}
+
+    # the CLI loads the champion by its URI (through MLflow's command line)
+    from PIL import Image
+
+    from components.cli.main import main as cli
+
+    Image.fromarray(np.full((32, 32, 3), 128, np.uint8)).save(folder / "grey.png")
+    monkeypatch.chdir(folder)
+    assert cli(["characterize", str(folder / "grey.png"), "--model", "models:/pidc@champion"]) == 0
+    assert f"with {best} (" in capsys.readouterr().err  # "characterized 1 image with <model> (… draws …)"
+    assert cli(["characterize", str(folder / "grey.png"), "--model", "models:/pidc@nobody"]) != 0
+    assert "models:/pidc@nobody: not found in the MLflow store" in capsys.readouterr().err
 
     loaded = OnnxPosterior.load(
         download_registered_model(champion["uri"])

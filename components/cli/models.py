@@ -8,7 +8,8 @@
   threshold calibrated on in-ODD targets resampled from the sources (Task III).
 
 Models come from the registry (:func:`components.export.lookup.load_registered`: ``champion``, a model id, or an
-exported folder). Unreadable images are reported one line each on stderr and skipped. Heavy imports happen inside
+exported folder) or from the MLflow Model Registry by URI (``models:/pidc@champion``, downloaded with MLflow's
+command line). Unreadable images are reported one line each on stderr and skipped. Heavy imports happen inside
 commands.
 
 Used by the ``pidc`` CLI only.
@@ -40,12 +41,40 @@ READ_BATCH = 64
 # --- shared -----------------------------------------------------------------------------------------------------
 
 
+def _download(uri: str, registry: Path) -> Path:
+    """The exported folder of an MLflow registered model ``uri`` (e.g. ``models:/pidc@champion``), downloaded with
+    MLflow's own command line (``mlflow artifacts download``), so that components import no MLflow. The tracking store
+    is ``MLFLOW_TRACKING_URI`` or the project's ``mlflow.db`` beside ``registry``."""
+    import os
+    import subprocess
+    import tempfile
+
+    store = os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{registry.resolve().parent / 'mlflow.db'}"
+    dest = Path(tempfile.mkdtemp(prefix="pidc-model-"))
+    cmd = [sys.executable, "-m", "mlflow", "artifacts", "download", "--artifact-uri", uri, "--dst-path", str(dest)]
+    try:
+        r = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "MLFLOW_TRACKING_URI": store})
+    except OSError as e:
+        raise CLIError(f"{uri}: could not run `mlflow artifacts download` ({e})") from None
+    if r.returncode != 0:
+        lines = [line for line in r.stderr.strip().splitlines() if line.strip()]
+        raise CLIError(f"{uri}: not found in the MLflow store {store}: {lines[-1] if lines else 'no message'}")
+    folder = dest / "extra_files"
+    if not (folder / "card.json").is_file():
+        raise CLIError(f"{uri}: not a pidc model (no extra_files/card.json among its files)")
+    return folder
+
+
 def _load_model(args: argparse.Namespace) -> Any:
-    """The registry model of ``--model``/``--registry`` (:class:`components.export.lookup.RegisteredPosterior`)."""
+    """The model of ``--model``/``--registry`` (:class:`components.export.lookup.RegisteredPosterior`): a registry
+    model (``champion``, a model id, a folder) or an MLflow registered model URI (``models:/pidc@champion``)."""
     from components.export.lookup import load_registered
 
+    model = str(args.model)
     try:
-        return load_registered(args.model, args.registry)
+        if model.startswith("models:/"):
+            return load_registered(_download(model, Path(args.registry)))
+        return load_registered(model, args.registry)
     except (FileNotFoundError, ValueError) as e:
         raise CLIError(str(e)) from None
 
@@ -85,19 +114,13 @@ def _inputs(model: Any, images: list[np.ndarray], bar: Any, command: str) -> np.
 
     The backbone's one-time "converting H×W images" warning becomes a ``note:`` line on stderr.
     """
-    from components.core.images import group_by_size
+    from components.core.images import map_by_size
 
-    out: np.ndarray | None = None
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", UserWarning)
-        for idx, batch in group_by_size(images):
-            x = model.inputs(batch)
-            if out is None:
-                out = np.empty((len(images), *x.shape[1:]), dtype=x.dtype)
-            out[idx] = x
+        out = map_by_size(images, model.inputs)
     for message in dict.fromkeys(str(w.message) for w in caught):
         _say(bar, f"pidc {command}: note: {message}", err=True)
-    assert out is not None
     return out
 
 
@@ -423,7 +446,7 @@ def _model_options(p: argparse.ArgumentParser) -> None:
         "--model",
         default="champion",
         help="'champion' (the model reports/task1/champion.json names), a model id under the registry, "
-        "or an exported folder (default: champion)",
+        "an exported folder, or an MLflow registered model URI such as models:/pidc@champion (default: champion)",
     )
     p.add_argument("--registry", type=Path, default=Path("registry"), help="the registry folder (default: registry)")
     p.add_argument("--seed", type=int, default=0, help="seed of every random draw (default 0)")

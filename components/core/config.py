@@ -226,8 +226,9 @@ class ExportConfig(_Section):
     #: torch → ONNX exporter: ``torchscript`` (~5 s a model here; deprecated by torch but checked against torch at
     #: export time) or ``dynamo`` (torch.export, torch's maintained route; 50–130 s a model here)
     exporter: Literal["torchscript", "dynamo"]
-    #: registered model name = prefix + model id (e.g. ``pidc-cues-1000``)
-    registered_prefix: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]*$")]
+    #: the one registered model whose versions are the exported models (each tagged ``pidc.model``); the aliases
+    #: ``champion`` and ``challenger`` move between its versions, so ``models:/<name>@champion`` is the current best
+    registered_model: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]+$")]
     #: the champion (alias ``champion``, ``reports/task1/champion.json``) is the lowest test NLL among the models whose
     #: calibration error lies within the band of a perfectly calibrated model (``evaluate.band_level``); when none
     #: does, the lowest test NLL among those with a calibration error ≤ this ceiling (the choice is recorded);
@@ -246,8 +247,9 @@ class GaussianMode(_Section):
 class Task2Config(_Section):
     """Task II: a bag of rendered images whose weather follows a known distribution → its characterization."""
 
-    #: the registry model characterizing the bag: a model id, or ``champion`` (best calibrated, after evaluate)
-    model: str
+    #: the model characterizing the bag: ``champion``/``challenger`` (the registered model's alias, e.g.
+    #: ``models:/pidc@champion``; the evaluate stage sets it), a ``models:/`` URI, or a model id of ``registry/``
+    model: Annotated[str, Field(min_length=1)]
     #: images in the bag (all equally weighted), rendered in fresh scenes
     images: PositiveInt
     images_per_scene: PositiveInt
@@ -286,8 +288,8 @@ class BagConfig(_Section):
 class Task3Config(_Section):
     """Task III: targets mixing three source bags and an out-of-ODD bag b0 at noise level η (the paper's sweep)."""
 
-    #: the registry model characterizing every bag: a model id, or ``champion``
-    model: str
+    #: the model characterizing every bag: as ``task2.model``
+    model: Annotated[str, Field(min_length=1)]
     #: b0 (out of the ODD; disjoint from the others), then the sources b1, b2, b3
     bags: dict[Annotated[str, Field(pattern=r"^b[0-9]+$")], BagConfig]
     #: the true mixture weights λ of the sources b1, b2, … (on the simplex)
@@ -338,6 +340,38 @@ class Task3Config(_Section):
         return sorted((n for n in self.bags if n != "b0"), key=lambda n: int(n[1:]))
 
 
+class MonitorConfig(_Section):
+    """Scheduled monitoring (``flows/monitor.py``, the deployments of ``prefect.yaml``): the registered models judged
+    on new labelled images every run, never a DVC output (``reports/monitoring/<date>/``, an MLflow experiment)."""
+
+    #: the MLflow experiment of the monitoring runs (one run ``monitor-<date>`` per scheduled run: a time series)
+    experiment: Annotated[str, Field(min_length=1)]
+    #: ``champion`` (``models:/<export.registered_model>@champion``) or ``all`` (every registered model's newest
+    #: version); a flow parameter overrides it
+    models: Literal["champion", "all"]
+    #: ``simulator`` (new images rendered from seeds of ``seed`` and the run's date) or the path of a folder of
+    #: recorded images with their labels (``labels.csv``: ``image`` and the six parameters; relative to the project)
+    source: Annotated[str, Field(min_length=1)]
+    #: Task I images per run (simulator: rendered; a folder: its first ones in ``labels.csv``, all if it holds fewer)
+    images: PositiveInt
+    #: posterior draws per image (credibility of the truth, coverage, the calibration band at the same count)
+    samples: Annotated[int, Field(ge=100)]
+    #: the level of both alarms: the calibration band is this quantile of a perfectly calibrated model's calibration
+    #: error on as many images and draws, and the false-alarm interval holds this probability of the ODD decision's
+    #: false-alarm count; a model that is fine raises each alarm with probability ≤ 1 − level
+    alarm_level: Annotated[float, Field(gt=0.5, lt=1)]
+    #: Task III: in-ODD targets of new seeds (and, from the simulator, new images) on which the ODD decision's
+    #: false-alarm rate is measured with the threshold of ``reports/task3/metrics.json``; 0: no ODD check
+    false_alarm_targets: NonNegativeInt
+
+    @field_validator("source")
+    @classmethod
+    def _source(cls, v: str) -> str:
+        if v != v.strip():
+            raise ValueError(f"must be 'simulator' or a folder path without surrounding spaces, got {v!r}")
+        return v
+
+
 class Params(_Section):
     """The whole ``params.yaml``, resolved: the default settings with the chosen profile's overrides merged over them."""
 
@@ -355,6 +389,7 @@ class Params(_Section):
     export: ExportConfig
     task2: Task2Config
     task3: Task3Config
+    monitor: MonitorConfig
 
     @field_validator("prior")
     @classmethod

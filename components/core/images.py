@@ -8,13 +8,14 @@ reason. :func:`list_images` expands folders (image extensions only, natural sort
 ``frame_10``), :func:`iter_images` reads a list and keeps going past bad files, and :func:`group_by_size` stacks
 images of equal size into the ``(n, H, W, 3)`` batches a backbone takes (it resizes each batch to its input size).
 
-Used by the ``pidc`` CLI only (``characterize``, ``domain``, ``relate``); no stage reads users' images.
+Used by the ``pidc`` CLI (``characterize``, ``domain``, ``relate``) and the scheduled monitoring's recorded images
+(:mod:`components.monitor.recorded`); no DVC stage reads users' images.
 """
 
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -29,6 +30,7 @@ __all__ = [
     "list_images",
     "iter_images",
     "group_by_size",
+    "map_by_size",
 ]
 
 #: File extensions (lower case) taken from a folder; a file named explicitly is read whatever its extension.
@@ -226,3 +228,17 @@ def group_by_size(images: Sequence[np.ndarray]) -> list[tuple[list[int], np.ndar
             raise ValueError(f"images[{i}] must be a uint8 (H, W, 3) RGB array, got {a.dtype} {a.shape}")
         groups.setdefault(a.shape, []).append(i)
     return [(idx, np.stack([images[i] for i in idx])) for idx in groups.values()]
+
+
+def map_by_size(images: Sequence[np.ndarray], fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """``fn`` applied to every batch of equal-size images (:func:`group_by_size`), its rows put back in the order of
+    ``images``: e.g. ``map_by_size(images, model.inputs)`` → the posterior inputs ``(n, …)`` of images of any sizes."""
+    out: np.ndarray | None = None
+    for idx, batch in group_by_size(images):
+        y = np.asarray(fn(batch))
+        if out is None:
+            out = np.empty((len(images), *y.shape[1:]), dtype=y.dtype)
+        out[idx] = y
+    if out is None:
+        raise ValueError("no images")
+    return out

@@ -18,7 +18,7 @@ The Operational Design Domain is the convex hull of the sources; a large δ(λ̂
 a threshold calibrated on in-ODD gaps for a chosen false-alarm rate; :func:`calibrate_on_sources` builds those gaps
 from the sources themselves (targets of random composition held out of the source bags) for the relative gap.
 
-Used by the ``task3`` stage and the ``pidc`` CLI (``relate``).
+Used by the ``task3`` stage, the scheduled monitoring and the ``pidc`` CLI (``relate``).
 """
 
 from __future__ import annotations

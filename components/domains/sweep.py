@@ -29,7 +29,7 @@ Everything works on the posterior's *context* (the embedding of each image compu
 ``posterior.on_context()`` and ``contexts = posterior.context(x)`` (:class:`components.export.runtime.OnnxPosterior`),
 so the sweep's cost is the flow's density evaluations only.
 
-Used by the ``task3`` stage.
+Used by the ``task3`` stage and the scheduled monitoring (``flows/monitor.py``).
 """
 
 from __future__ import annotations

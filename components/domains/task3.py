@@ -1,6 +1,6 @@
 """Task III (paper): the source and out-of-ODD bags of the test split, the sweep over η, and its metrics.
 
-Used by the ``task3`` stage and its benchmark. The bags are the test images whose weather lies in a sub-box
+Used by the ``task3`` stage, its benchmark and the scheduled monitoring (``flows/monitor.py``). The bags are the test images whose weather lies in a sub-box
 (``task3.bags``); every image is characterized once by the registry model (its context), and the sweep
 (:class:`~components.domains.sweep.NoiseSweep`) mixes them into targets at each noise level η.
 
@@ -30,7 +30,7 @@ from components.domains.relative import OddDetector
 from components.domains.scenarios import in_sub_box
 from components.domains.sweep import Experiment, FalseAlarmCheck, NoiseSweep, experiments_by_eta, summarize_sweep
 from components.evaluate.diagnostics import roc_curve
-from components.export.lookup import load_registered
+from components.export.lookup import RegisteredPosterior
 from components.features import cache as features
 from components.simulate import dataset
 
@@ -38,6 +38,7 @@ __all__ = [
     "KINDS",
     "PER_ETA",
     "BagSplit",
+    "bag_of",
     "split_bags",
     "bag_members",
     "build_sweep",
@@ -100,13 +101,22 @@ def _bag_order(names: Sequence[str]) -> list[str]:
     return sorted(names, key=lambda n: int(n[1:]))
 
 
+def bag_of(bags: Mapping[str, BagConfig], theta: np.ndarray) -> np.ndarray:
+    """The bag each weather of ``theta (N, 6)`` belongs to: the first of b0, b1, b2, … (``task3.bags``) whose sub-box
+    holds it, ``""`` for none; ``(N,)`` of names."""
+    owner = np.full(np.asarray(theta).shape[0], "", dtype=object)
+    for name in reversed(_bag_order(bags)):  # the first bag in order is written last
+        owner[in_sub_box(theta, bags[name].box)] = name
+    return owner
+
+
 def split_bags(bags: Mapping[str, BagConfig], theta: np.ndarray, fresh: bool) -> BagSplit:
     """The disjoint bags and fresh pools of the test images of true weathers ``theta (N, 6)`` (module docstring).
 
     ``bags``: ``task3.bags`` (b0 first, then the sources). ``fresh``: whether fresh targets are run, so every source
     needs a pool at least as large as its bag. ``ValueError`` naming ``task3.bags.<name>…`` otherwise.
     """
-    owner = np.full(np.asarray(theta).shape[0], "", dtype=object)
+    owner = bag_of(bags, theta)
     members, pools, counts, given = {}, {}, {}, {}
     for name in _bag_order(bags):
         cfg = bags[name]
@@ -117,16 +127,15 @@ def split_bags(bags: Mapping[str, BagConfig], theta: np.ndarray, fresh: bool) ->
                 f"task3.bags.{name}.box: no test image lies in its sub-box {dict(cfg.box)}; widen the box or grow "
                 "data.splits.test"
             )
-        taken = owner[inside]
-        given[name] = {b: int(np.sum(taken == b)) for b in _bag_order(set(taken) - {""})}
-        own = np.flatnonzero(inside & (owner == ""))
+        taken = owner[inside & (owner != name)]  # images of its sub-box that belong to an earlier bag
+        given[name] = {b: int(np.sum(taken == b)) for b in _bag_order(set(taken))}
+        own = np.flatnonzero(owner == name)
         if own.size == 0:
             raise ValueError(
                 f"task3.bags.{name}.box: all {counts[name]} test images of its sub-box also lie in the sub-box of "
                 f"{', '.join(given[name])}, which comes first (an image in two sub-boxes belongs to the first bag): "
                 f"bags {name} and {', '.join(given[name])} cannot be disjoint; make {name}'s box overlap theirs less"
             )
-        owner[own] = name
         size = min(cfg.max_images, own.size)
         members[name] = own[:size]
         if name == "b0":
@@ -150,11 +159,14 @@ def bag_members(params: Params, theta: np.ndarray) -> BagSplit:
     return split_bags(params.task3.bags, theta, params.task3.fresh_targets)
 
 
-def build_sweep(params: Params, paths: ProjectPaths) -> tuple[NoiseSweep, BagSplit, str]:
-    """The sweep of the project: the registry model's contexts of the bags' test images (from the feature cache).
-    Returns the sweep, the bags' test-image indices and the model's name."""
+def build_sweep(
+    params: Params, paths: ProjectPaths, model: RegisteredPosterior, fresh_inputs: Sequence[np.ndarray] | None = None
+) -> tuple[NoiseSweep, BagSplit, str]:
+    """The sweep of the project: ``model``'s contexts of the bags' test images (from the feature cache; open the model
+    with one onnxruntime thread: many small calls). ``fresh_inputs``: the posterior inputs of other images of each
+    source's weather (b1, b2, … in order), the fresh pools instead of the test split's (scheduled monitoring: new
+    images). Returns the sweep, the bags' test-image indices and the model's name."""
     t = params.task3
-    model = load_registered(t.model, paths.registry)  # one thread: many small calls
     test = dataset.open_split(paths.data, "test")
     split = bag_members(params, test.theta)
     cached = features.open_features(paths.features, model.backbone.name, test)
@@ -162,7 +174,10 @@ def build_sweep(params: Params, paths: ProjectPaths) -> tuple[NoiseSweep, BagSpl
     def contexts(idx: np.ndarray) -> np.ndarray:
         return model.posterior.context(features.inputs_from_cached(model.backbone, cached[idx]))
 
-    fresh = [contexts(split.pools[s]) for s in t.sources] if t.fresh_targets else None
+    if fresh_inputs is not None:
+        fresh = [model.posterior.context(x) for x in fresh_inputs]
+    else:
+        fresh = [contexts(split.pools[s]) for s in t.sources] if t.fresh_targets else None
     sweep = NoiseSweep(
         model.posterior.on_context(),
         contexts(split.members["b0"]),

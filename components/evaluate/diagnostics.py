@@ -32,7 +32,6 @@ __all__ = [
     "calibration_error",
     "calibration_band",
     "coverage_error",
-    "energy_distance",
     "hdr_mass",
     "roc_curve",
     "DEFAULT_LEVELS",
@@ -184,38 +183,6 @@ def coverage_error(credibility: object, levels: object | None = None) -> float:
     """
     _, dev = _deviation(credibility, levels)
     return float(dev[np.argmax(np.abs(dev))])
-
-
-def _mean_pairwise_distance(a: np.ndarray, b: np.ndarray, chunk: int = 2048) -> float:
-    total = 0.0
-    for s in range(0, a.shape[0], chunk):
-        diff = a[s : s + chunk, None, :] - b[None, :, :]
-        total += float(np.sqrt((diff**2).sum(axis=-1)).sum())
-    return total / (a.shape[0] * b.shape[0])
-
-
-def energy_distance(a: object, b: object, scale: object | None = None) -> float:
-    """The energy distance between two samples ``a (n, d)`` and ``b (m, d)`` (Székely & Rizzo):
-
-        D(P, Q) = sqrt(2 E‖X − Y‖ − E‖X − X′‖ − E‖Y − Y′‖),   X, X′ ~ P,  Y, Y′ ~ Q,
-
-    with the V-statistic estimates of the expectations (all pairs). D = 0 iff P = Q; for d = 1 it equals
-    ``scipy.stats.energy_distance``. ``scale`` ``(d,)`` divides each coordinate first (e.g. the prior's width, so that
-    parameters in %, degrees… weigh alike); D is then in those units. O(n·m) time.
-    """
-    x, y = (np.asarray(v, dtype=np.float64) for v in (a, b))
-    for name, v in (("a", x), ("b", y)):
-        if v.ndim != 2 or v.shape[0] < 1 or not np.all(np.isfinite(v)):
-            raise ValueError(f"{name} must be finite samples of shape (n, d), got shape {v.shape}")
-    if x.shape[1] != y.shape[1]:
-        raise ValueError(f"a and b must have the same dimension, got {x.shape[1]} and {y.shape[1]}")
-    if scale is not None:
-        s = np.asarray(scale, dtype=np.float64)
-        if s.shape != (x.shape[1],) or not np.all(s > 0):
-            raise ValueError(f"scale must be positive of shape ({x.shape[1]},), got {s.shape}")
-        x, y = x / s, y / s
-    d2 = 2 * _mean_pairwise_distance(x, y) - _mean_pairwise_distance(x, x) - _mean_pairwise_distance(y, y)
-    return float(np.sqrt(max(d2, 0.0)))
 
 
 def hdr_mass(log_prob_estimate: object, log_prob_points: object, level: float) -> float:

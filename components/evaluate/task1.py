@@ -1,6 +1,6 @@
 """Task I, per model: posterior draws on test images, the calibration and sharpness metrics, and the PPCs.
 
-Used by the ``evaluate`` stage (one call per exported model). Notation: for test image xᵢ with true weather θᵢ*,
+Used by the ``evaluate`` stage (one call per exported model) and the scheduled monitoring. Notation: for test image xᵢ with true weather θᵢ*,
 q(θ | xᵢ) is the model's posterior; its samples θᵢⱼ and their log-densities log q(θᵢⱼ | xᵢ) give the HPD
 credibility of θᵢ* (:mod:`components.evaluate.diagnostics`); the calibration error is judged against the band a
 perfectly calibrated model shows on the same number of images (:func:`calibration_band`). Per-parameter figures are

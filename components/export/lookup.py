@@ -6,7 +6,7 @@ the evaluate stage) names the model the Task I evaluation found best calibrated.
 backbone (named in the card): :class:`RegisteredPosterior` pairs the torch-free
 :class:`~components.export.runtime.OnnxPosterior` with the backbone that turns uint8 images into the posterior's input.
 
-Used by the ``evaluate``, ``task2`` and ``task3`` stages and the ``pidc`` CLI.
+Used by the ``evaluate``, ``task2`` and ``task3`` stages, the scheduled monitoring and the ``pidc`` CLI.
 """
 
 from __future__ import annotations

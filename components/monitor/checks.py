@@ -1,0 +1,196 @@
+"""The two checks of a monitoring run and the alarms that fail it.
+
+**Calibration (Task I).** A model's calibration error max_l |c(l) − l| on the run's n images with S posterior draws each
+is compared with the band of a perfectly calibrated model on the same n and S: the ``level`` quantile of that model's
+calibration error (:func:`components.evaluate.task1.calibration_band`, simulated). A calibrated model exceeds its band
+with probability 1 − level; a model that drifted (or images whose labels are wrong) exceeds it more often, the more
+images the run judges.
+
+**False alarms of the ODD decision (Task III).** The pipeline's threshold is the r-th smallest of m relative gaps of
+in-ODD calibration targets (r = ⌈(m + 1)(1 − α)⌉, ``reports/task3/metrics.json``). On n new in-ODD targets that are
+exchangeable with the calibration targets (nothing changed), the number K flagged follows the beta-binomial
+BB(n, m + 1 − r, r) exactly, whatever the distribution of the gaps: the share of in-ODD targets above the r-th of m
+order statistics is Beta(m + 1 − r, r), and given it K is binomial. As m → ∞ it tends to the binomial B(n, α) of the
+nominal rate α (:func:`false_alarm_interval` gives that one when m is not known); with a finite m the binomial
+interval is too narrow and would alarm more often than 1 − level. The alarm fires when K leaves the central interval
+that holds at least ``level`` of that distribution: too many false alarms (in-ODD gaps grew: the decision breaks its
+promise) or too few (they shrank: the threshold no longer sits where it was calibrated).
+
+A run whose checks raise an alarm ends with :class:`MonitoringAlarm` (after its report is written), naming each alarm.
+
+Used by the scheduled monitoring (``flows/monitor.py``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+from scipy import stats
+
+from components.domains.relative import OddDetector
+from components.domains.sweep import FalseAlarmCheck
+
+__all__ = [
+    "MonitoringAlarm",
+    "calibration_alarm",
+    "false_alarm_interval",
+    "CalibratedOdd",
+    "FalseAlarmTest",
+    "alarms",
+]
+
+
+class MonitoringAlarm(RuntimeError):
+    """A monitoring run found a model outside its calibration band or an ODD false-alarm count outside its
+    interval; the message names every alarm."""
+
+
+def calibration_alarm(model: str, metrics: Mapping[str, float]) -> str | None:
+    """The alarm of ``model`` whose Task I ``metrics`` (``calibration_error``, ``calibration_band``, ``images``,
+    ``samples``) put it outside its band, else None."""
+    error, band = float(metrics["calibration_error"]), float(metrics["calibration_band"])
+    if error <= band:
+        return None
+    return (
+        f"calibration alarm: {model} has a calibration error of {error:.3f} on {int(metrics['images'])} images "
+        f"({int(metrics['samples'])} draws each), outside the band {band:.3f} of a perfectly calibrated model"
+    )
+
+
+def false_alarm_interval(
+    n: int, alpha: float, level: float, calibration_targets: int | None = None, rank: int | None = None
+) -> tuple[int, int, str]:
+    """The central interval ``[low, high]`` of the number of false alarms among ``n`` in-ODD targets that holds at least
+    ``level`` of its distribution (each tail ≤ (1 − level)/2), and the distribution's name: BB(n, m + 1 − r, r) for a
+    threshold at rank ``rank`` = r of ``calibration_targets`` = m calibration gaps, else the binomial B(n, α)."""
+    if isinstance(n, bool) or int(n) != n or n < 1:
+        raise ValueError(f"n must be a positive number of targets, got {n!r}")
+    if not 0.0 < float(alpha) < 1.0:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha!r}")
+    if not 0.0 < float(level) < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level!r}")
+    if (calibration_targets is None) != (rank is None):
+        raise ValueError("give both calibration_targets and rank, or neither")
+    if calibration_targets is None:
+        dist, name = stats.binom(int(n), float(alpha)), f"binomial(n={int(n)}, α={float(alpha):g})"
+    else:
+        m, r = int(calibration_targets), int(rank)
+        if not 1 <= r <= m:
+            raise ValueError(f"rank must lie in 1…{m} (calibration_targets), got {rank!r}")
+        dist, name = stats.betabinom(int(n), m + 1 - r, r), f"beta-binomial(n={int(n)}, m+1−r={m + 1 - r}, r={r})"
+    tail = (1.0 - float(level)) / 2.0
+    # ppf(q): the smallest k with P(K ≤ k) ≥ q; so P(K < low) < tail and P(K > high) ≤ tail
+    low, high = int(dist.ppf(tail)), int(dist.ppf(1.0 - tail))
+    return low, high, name
+
+
+@dataclass(frozen=True)
+class CalibratedOdd:
+    """The ODD decision as the ``task3`` stage calibrated it (``reports/task3/metrics.json``).
+
+    Attributes:
+        model: the model it was calibrated for (its relative gaps).
+        detector: threshold, α and the number m of calibration targets.
+        calibrated_on: the target kind, ``fresh`` (in-ODD part from other images of the sources' weather) or ``paper``.
+        bag_sizes: source bag → its images; pool_sizes: source bag → the images of its fresh pool.
+    """
+
+    model: str
+    detector: OddDetector
+    calibrated_on: str
+    bag_sizes: dict[str, int]
+    pool_sizes: dict[str, int]
+
+    @classmethod
+    def from_metrics(cls, metrics: Mapping, path: str | Path) -> CalibratedOdd:
+        """From the content of ``reports/task3/metrics.json`` at ``path``; ``ValueError`` naming the file and key."""
+        try:
+            odd = metrics["odd"]
+            detector = OddDetector(
+                float(odd["threshold"]), float(odd["false_alarm_rate"]), int(odd["calibration_targets"])
+            )
+            bags = {k: v for k, v in metrics["bags"].items() if k != "b0"}
+            calibrated = cls(
+                str(metrics["model"]),
+                detector,
+                str(odd["calibrated_on"]),
+                {k: int(v["images"]) for k, v in bags.items()},
+                {k: int(v.get("fresh_pool", 0)) for k, v in bags.items()},
+            )
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise ValueError(
+                f"{path}: not the Task III metrics the monitoring needs (model, bags, odd.threshold, "
+                f"odd.false_alarm_rate, odd.calibration_targets, odd.calibrated_on): {type(e).__name__} {e}; "
+                "re-run `dvc repro task3`"
+            ) from None
+        if calibrated.calibrated_on not in ("paper", "fresh"):
+            raise ValueError(f"{path}: odd.calibrated_on is {calibrated.calibrated_on!r}, expected paper or fresh")
+        if int(odd.get("rank", detector.rank)) != detector.rank:
+            raise ValueError(f"{path}: odd.rank {odd['rank']} is not ⌈(m+1)(1−α)⌉ = {detector.rank}")
+        return calibrated
+
+
+@dataclass(frozen=True)
+class FalseAlarmTest:
+    """The ODD decision's false alarms on a run's new in-ODD targets against their interval.
+
+    Attributes:
+        check: the count, rate and Clopper–Pearson interval of the rate (:class:`~components.domains.sweep.FalseAlarmCheck`).
+        level: the interval's probability; low, high: the interval of the count; distribution: its distribution.
+        binomial: the binomial interval of α on as many targets (for reference: it ignores the threshold's spread).
+    """
+
+    check: FalseAlarmCheck
+    level: float
+    low: int
+    high: int
+    distribution: str
+    binomial: tuple[int, int]
+
+    @classmethod
+    def of(cls, check: FalseAlarmCheck, detector: OddDetector, level: float) -> FalseAlarmTest:
+        """``check`` (flags of the ``detector`` on new in-ODD targets) against :func:`false_alarm_interval`."""
+        low, high, name = false_alarm_interval(
+            check.n, detector.false_alarm_rate, level, detector.n_calibration, detector.rank
+        )
+        binomial = false_alarm_interval(check.n, detector.false_alarm_rate, level)[:2]
+        return cls(check, float(level), low, high, name, binomial)
+
+    @property
+    def alarm(self) -> bool:
+        """True when the count lies outside ``[low, high]``."""
+        return not self.low <= self.check.flagged <= self.high
+
+    def message(self, model: str) -> str | None:
+        """The alarm's message, or None."""
+        if not self.alarm:
+            return None
+        c = self.check
+        side = "more" if c.flagged > self.high else "fewer"
+        return (
+            f"ODD false-alarm alarm: {model}'s ODD decision flagged {c.flagged} of {c.n} new in-ODD {c.targets} targets "
+            f"({c.rate:.3f} at α = {c.alpha:g}), {side} than the {100 * self.level:g} % interval [{self.low}, "
+            f"{self.high}] of the {self.distribution} count"
+        )
+
+    def to_dict(self) -> dict:
+        return self.check.to_dict() | {
+            "interval_low": self.low,
+            "interval_high": self.high,
+            "interval_level": self.level,
+            "interval_distribution": self.distribution,
+            "binomial_interval_low": self.binomial[0],
+            "binomial_interval_high": self.binomial[1],
+            "alarm": self.alarm,
+        }
+
+
+def alarms(models: Mapping[str, Mapping[str, float]], odd: FalseAlarmTest | None, odd_model: str | None) -> list[str]:
+    """Every alarm of a run: the calibration alarm of each model of ``models`` (model id → Task I metrics) and the
+    false-alarm alarm of ``odd`` (the test of ``odd_model``'s ODD decision; None when it did not run)."""
+    found = [a for m, metrics in models.items() if (a := calibration_alarm(m, metrics))]
+    if odd is not None and (a := odd.message(str(odd_model))):
+        found.append(a)
+    return found

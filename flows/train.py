@@ -27,6 +27,7 @@ from components.posterior import NPE, train
 from components.posterior.metrics import mean_nll
 from components.posterior.settings import flow_config, training_config
 from components.posterior.store import save_npe
+from components.posterior.temperature import calibrate
 from components.simulate import dataset
 from flows import tracking
 from flows.stage import open_stage, parse_stage_args, use_all_cores
@@ -129,6 +130,8 @@ def train_model(backbone_name: str, size: int, params_path: str, variant_name: s
             progress=True,
         )
         model.eval()
+        # post-hoc calibration on the validation split (deterministic: resuming re-fits the same τ)
+        tempered = calibrate(model, x["val"], torch.from_numpy(theta["val"])) if params.train.temperature else {}
         test_nll = mean_nll(model, x["test"], theta["test"])
         metrics = {
             "test_nll": test_nll,
@@ -138,6 +141,7 @@ def train_model(backbone_name: str, size: int, params_path: str, variant_name: s
             "best_epoch": history.best_epoch,
             "epochs_run": len(history.records),
             "wall_seconds": time.perf_counter() - t0,
+            **tempered,
         }
         run.log_metrics(metrics)
 

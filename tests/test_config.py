@@ -14,7 +14,7 @@ import yaml
 from pydantic import BaseModel
 
 from components.core import seeding
-from components.core.config import PROJECT_ROOT, ConfigError, Params, load_params, parse_params
+from components.core.config import NAMED_MAPPINGS, PROJECT_ROOT, ConfigError, Params, load_params, parse_params
 
 PROFILES = ["default", *sorted(f.stem for f in (PROJECT_ROOT / "profiles").glob("*.yaml"))]
 
@@ -24,11 +24,12 @@ def _default():
 
 
 def _leaves(d: dict, where: str = "") -> dict[str, object]:
-    """Dotted key → value of every leaf of nested mappings (lists and scalars are leaves)."""
+    """Dotted key → value of every leaf of nested mappings (lists, scalars and the named mappings a profile replaces
+    whole, such as ``train.variants``, are leaves)."""
     out = {}
     for k, v in d.items():
         key = f"{where}.{k}" if where else str(k)
-        out |= _leaves(v, key) if isinstance(v, dict) and v else {key: v}
+        out |= _leaves(v, key) if isinstance(v, dict) and v and key not in NAMED_MAPPINGS else {key: v}
     return out
 
 
@@ -109,7 +110,7 @@ def test_profiles_merge_mappings_and_replace_lists(tmp_path: Path):
     (tmp_path / "profiles").mkdir()
     (tmp_path / "profiles" / "small.yaml").write_text(
         "data:\n  splits: {test: 3000}\n  runner: {workers: 1}\nbackbones:\n  names: [cues]\n"
-        "train:\n  variants: {balanced: {backbone: cues}, ensemble: {backbone: cues}}\n"
+        "train:\n  variants: {ensemble: {backbone: cues, size: 5000, balance: 0.0, ensemble: 2}}\n"
     )
     shutil.copy(PROJECT_ROOT / "params.yaml", tmp_path / "params.yaml")
     p = load_params(tmp_path / "params.yaml", profile="small")
@@ -117,7 +118,8 @@ def test_profiles_merge_mappings_and_replace_lists(tmp_path: Path):
     assert p.profile == "small" and p.data.splits == {**base.data.splits, "test": 3000}
     assert p.data.runner.workers == 1 and p.data.runner.kind == base.data.runner.kind
     assert p.backbones.names == ("cues",) and p.backbones.batch_size == base.backbones.batch_size
-    assert p.train.variants == base.train.variants
+    assert base.train.variants == {}  # train.variants is replaced whole (its keys are the user's names)
+    assert list(p.train.variants) == ["ensemble"] and p.train.variants["ensemble"].ensemble == 2
 
 
 def test_unknown_key_in_a_profile_is_named_with_its_file(tmp_path: Path):
@@ -165,7 +167,8 @@ MISSING = [
     "train.flow.bins",
     "train.flow.standardize",
     "train.min_lr",
-    "train.variants.balanced.ensemble",
+    "train.variants",
+    "train.temperature",
     "task2.modes",
     "task3.bags",
     "task3.bags.b1.max_images",

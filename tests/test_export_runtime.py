@@ -59,7 +59,8 @@ def exported(tmp_path_factory) -> dict[str, tuple[NPE, OnnxPosterior, Path]]:
     """Three models exported (with the fast torchscript exporter) and loaded back.
 
     ``features``: a coupling flow (2 transforms); ``ensemble``: two of them; ``cnn``: a trainable CNN embedding and a
-    fully autoregressive flow (6 inversion passes).
+    fully autoregressive flow (6 inversion passes). The ensemble and the CNN model have a base scale τ ≠ 1 (the
+    post-hoc temperature), so every graph check covers a tempered flow too.
     """
     root = tmp_path_factory.mktemp("registry")
     out = {}
@@ -68,6 +69,8 @@ def exported(tmp_path_factory) -> dict[str, tuple[NPE, OnnxPosterior, Path]]:
         ("ensemble", _features_model(2, 2)),
         ("cnn", _cnn_model(3)),
     ):
+        if name != "features":
+            model.set_temperature(torch.linspace(0.7, 1.3, model.dim))
         folder = export_posterior(model, root / name, card={"backbone": name, "train_size": 7}, exporter="torchscript")
         out[name] = (model, OnnxPosterior.load(folder), folder)
     return out

@@ -4,7 +4,8 @@ Every setting of the pipeline is written in ``params.yaml`` and nowhere else: th
 defaults, so an unknown key, a missing key or a bad value raises :class:`ConfigError` naming the file
 and the dotted key. A profile (``profiles/<name>.yaml`` beside ``params.yaml``) holds only overrides of
 those settings; ``params.yaml``'s ``profile`` key (or :func:`load_params`'s ``profile`` argument) picks it
-and its overrides are merged over the file (mappings recursively; lists and scalars replace). ``default``
+and its overrides are merged over the file (mappings recursively, except the named ``train.variants``, which a
+profile replaces whole; lists and scalars replace). ``default``
 is ``params.yaml`` as it is.
 
 Sections are owned by the components that use them; each is a small pydantic model here so that one
@@ -183,6 +184,9 @@ class TrainConfig(_Section):
     clip_norm: Annotated[float, Field(gt=0)] | None
     #: λ of balanced NPE (calibration beyond the paper; 0 = plain NPE)
     balance: Annotated[float, Field(ge=0)]
+    #: after training, fit the flows' base scale τ (one per parameter) on the validation split by maximum
+    #: likelihood (post-hoc calibration, components/posterior/temperature.py); false: τ = 1
+    temperature: bool
     #: calibrated variants trained and evaluated beside the grid
     variants: dict[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")], VariantConfig]
 
@@ -486,13 +490,19 @@ def profile_names(params_path: str | Path) -> list[str]:
     return [DEFAULT_PROFILE, *(n for n in found if n != DEFAULT_PROFILE)]
 
 
+#: mappings keyed by the user's names, not by settings: a profile's value replaces params.yaml's as a whole
+NAMED_MAPPINGS: frozenset[str] = frozenset({"train.variants"})
+
+
 def _merge(base: dict, override: dict, where: str, unknown: list[str]) -> dict:
-    """``override`` merged over ``base``: mappings recursively, anything else replaced; keys not in ``base`` are
-    collected (dotted) in ``unknown``."""
+    """``override`` merged over ``base``: mappings recursively (but :data:`NAMED_MAPPINGS` replaced), anything else
+    replaced; keys not in ``base`` are collected (dotted) in ``unknown``."""
     out = dict(base)
     for k, v in override.items():
         key = f"{where}.{k}" if where else str(k)
-        if k not in base:
+        if key in NAMED_MAPPINGS and k in base:
+            out[k] = v
+        elif k not in base:
             unknown.append(key)
         elif isinstance(base[k], dict) and isinstance(v, dict):
             out[k] = _merge(base[k], v, key, unknown)

@@ -11,6 +11,9 @@ Inside the zuko flow, z is first divided by the fixed :data:`Z_SCALE` so that th
 zuko's splines act (outside it they are the identity). ``NPE.flow(x)`` returns the full z-space distribution,
 this scaling included.
 
+Each flow ends with the fixed scaling ε ↦ ε / τ, τ = :attr:`NPE.temperature` (ones until fitted on held-out data by
+:mod:`components.posterior.temperature`): the base is N(0, diag τ²).
+
 With ``FlowConfig.ensemble = K > 1`` the estimator is the equal-weight mixture of K flows with independent
 initializations sharing the embedding: ``q(θ | x) = (1/K) Σₖ qₖ(θ | x)``. The members are trained together on the
 same batches, each on its own NPE loss (the loss is their mean), so they differ by their initialization only.
@@ -89,7 +92,10 @@ def _build_flow(dim: int, context: int, config: FlowConfig, seed: int) -> zuko.f
     scale = zuko.flows.UnconditionalTransform(
         AffineTransform, loc=torch.tensor(0.0), scale=torch.tensor(1.0 / Z_SCALE), buffer=True
     )
-    return zuko.flows.Flow([scale, *nsf.transform.transforms], nsf.base)
+    temper = zuko.flows.UnconditionalTransform(
+        AffineTransform, loc=torch.zeros(dim), scale=torch.ones(dim), buffer=True
+    )
+    return zuko.flows.Flow([scale, *nsf.transform.transforms, temper], nsf.base)
 
 
 def _generator(rng: torch.Generator | int) -> torch.Generator:
@@ -170,6 +176,22 @@ class NPE(nn.Module):
     def dim(self) -> int:
         """d, the number of parameters θ."""
         return self.box.dim
+
+    @property
+    def temperature(self) -> Tensor:
+        """τ ``(d,)``, the base distribution's scale N(0, diag τ²) (ones until
+        :func:`~components.posterior.temperature.calibrate`)."""
+        return 1.0 / self.flows[0].transform.transforms[-1].scale
+
+    @torch.no_grad()
+    def set_temperature(self, tau: Tensor) -> None:
+        """Set τ ``(d,)`` > 0 in every member: the flows' last transform becomes ε ↦ ε / τ."""
+        tau = torch.as_tensor(tau, dtype=torch.float64)
+        if tau.shape != (self.dim,) or not bool(torch.isfinite(tau).all()) or not bool((tau > 0).all()):
+            raise ValueError(f"the temperature τ must be {self.dim} finite positive numbers, got {tau.tolist()}")
+        for flow in self.flows:
+            last = flow.transform.transforms[-1]
+            last.scale.copy_((1.0 / tau).to(last.scale))
 
     @property
     def dtype(self) -> torch.dtype:

@@ -12,7 +12,9 @@ Levers (``--setting NAME``, several allowed):
 * ``cues-v1-<n>``: the 80 version-1 cues (the first 80 columns of the version-2 cache), ``n`` training images;
 * ``cues-v2-<n>``: all 241 cues;
 * ``…-e<k>``: ``k`` epochs instead of the pipeline's (``params.yaml`` ``train`` with its sample budget);
-* ``…-ens<k>``: an equal-weight ensemble of ``k`` flows.
+* ``…-ens<k>``: an equal-weight ensemble of ``k`` flows;
+* ``…-t``: the base temperature τ fitted on the validation split after training (``train.temperature``,
+  :mod:`components.posterior.temperature`); without it τ = 1, whatever ``params.yaml`` says.
 
 Everything else is the pipeline's (``components.posterior.settings`` from ``params.yaml``). Usage::
 
@@ -46,19 +48,27 @@ from components.evaluate import diagnostics  # noqa: E402
 from components.features import cache  # noqa: E402
 from components.posterior import NPE, train  # noqa: E402
 from components.posterior.settings import flow_config, training_config  # noqa: E402
+from components.posterior.temperature import calibrate  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 
-_SETTING = re.compile(r"^cues-(v1|v2)-(\d+)(?:-ens(\d+))?(?:-e(\d+))?$")
+_SETTING = re.compile(r"^cues-(v1|v2)-(\d+)(?:-ens(\d+))?(?:-e(\d+))?(-t)?$")
 V1_COLUMNS = 80
 
 
 def parse_setting(name: str) -> dict:
-    """``cues-v2-50000-ens3-e20`` → {version, size, ensemble, epochs}; ``ValueError`` naming the grammar otherwise."""
+    """``cues-v2-50000-ens3-e20-t`` → {version, size, ensemble, epochs, temperature}; ``ValueError`` naming the
+    grammar otherwise."""
     m = _SETTING.match(name)
     if not m:
-        raise ValueError(f"setting {name!r}: expected cues-(v1|v2)-<size>[-ens<k>][-e<epochs>]")
-    v, size, ens, ep = m.groups()
-    return {"version": v, "size": int(size), "ensemble": int(ens or 1), "epochs": int(ep) if ep else None}
+        raise ValueError(f"setting {name!r}: expected cues-(v1|v2)-<size>[-ens<k>][-e<epochs>][-t]")
+    v, size, ens, ep, temp = m.groups()
+    return {
+        "version": v,
+        "size": int(size),
+        "ensemble": int(ens or 1),
+        "epochs": int(ep) if ep else None,
+        "temperature": bool(temp),
+    }
 
 
 def run(name: str, root: Path, samples: int, seed: int) -> dict:
@@ -84,8 +94,9 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
         (torch.from_numpy(x["val"]), torch.from_numpy(theta["val"])),
         tc,
     )
-    seconds = time.perf_counter() - t0
     model.eval()
+    tempered = calibrate(model, torch.from_numpy(x["val"]), torch.from_numpy(theta["val"])) if s["temperature"] else {}
+    seconds = time.perf_counter() - t0
     xt, tt = torch.from_numpy(x["test"]), torch.from_numpy(theta["test"])
     with torch.no_grad():
         lp_truth = torch.cat([model.log_prob(tt[i : i + 500], xt[i : i + 500]) for i in range(0, len(xt), 500)])
@@ -108,6 +119,7 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
         "epochs_run": len(history.records),
         "best_epoch": history.best_epoch,
         "train_seconds": round(seconds, 1),
+        **tempered,
         "test_images": len(xt),
         "test_nll": nll,
         "info_gain_nats": params.box.log_volume() - nll,

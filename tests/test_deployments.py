@@ -313,7 +313,10 @@ def test_prefect_yaml_deployments_monitor_on_a_process_worker(monitored_project,
         tags = logged.data.tags
         assert tags["pidc.date"] == day and tags["pidc.model"] == "cues-2000"
         assert tags["pidc.registered_version"] == version and tags["pidc.models_monitored"] == which
-        assert logged.data.metrics["task1.champion.calibration_error"] == model["calibration_error"]
+        # metrics are logged to 6 significant digits (flows.tracking._digits)
+        assert logged.data.metrics["task1.champion.calibration_error"] == pytest.approx(
+            model["calibration_error"], rel=1e-5
+        )
         history = client.get_metric_history(logged.info.run_id, "task1.cues-2000.calibration_error")
         midnight = dt.datetime.fromisoformat(day).replace(tzinfo=dt.UTC)
         assert [(m.step, m.timestamp) for m in history] == [

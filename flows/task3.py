@@ -28,7 +28,7 @@ from tqdm.auto import tqdm
 from components import plots
 from components.core.files import atomic_write_bytes
 from components.domains.sweep import Experiment, NoiseSweep, experiments_by_eta
-from components.domains.task3 import build_sweep, eta_rows, eta_series, roc_rows, task3_metrics
+from components.domains.task3 import DETECTED, build_sweep, eta_rows, eta_series, roc_rows, task3_metrics
 from components.evaluate.diagnostics import roc_curve
 from components.export.lookup import load_registered, read_champion
 from flows import tracking
@@ -147,6 +147,18 @@ def task3(params_path: str = "params.yaml") -> dict:
         {"pidc.odd_calibrated_on": calibrated_on, "pidc.model_source": tracking.model_source(params, t.model)},
         _description(metrics, calibrated_on),
     )
+    floor = metrics["odd"]["detects_from_eta"]
+    if floor is None or floor >= max(t.etas):
+        logger.warning(
+            "task3: the ODD decision (calibrated on %s targets) flags at least %d %% of the targets only from η = %s: "
+            "it keeps its false-alarm rate but detects no partly out-of-ODD target (median relative gap of in-ODD "
+            "%s targets %.3f: the sources do not explain them); see README, Task III",
+            calibrated_on,
+            round(100 * DETECTED),
+            "never" if floor is None else f"{floor:g}",
+            calibrated_on,
+            metrics["eta"]["0"][f"relative_gap_median_{calibrated_on}"],
+        )
     odd = metrics["odd"]["false_alarms_new_seeds"]
     logger.info(
         "task3: %s experiments in %.1f s; d_E median at η=0 (paper) %.3g; AUC at η=0.1 (%s targets) %s; threshold "

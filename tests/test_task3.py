@@ -14,7 +14,17 @@ from components.core.seeding import rng
 from components.domains.relative import OddDetector
 from components.domains.scenarios import in_sub_box
 from components.domains.sweep import FalseAlarmCheck, NoiseSweep
-from components.domains.task3 import PER_ETA, BagSplit, eta_rows, eta_series, roc_rows, split_bags, task3_metrics
+from components.domains.task3 import (
+    DETECTED,
+    PER_ETA,
+    BagSplit,
+    detection_floor,
+    eta_rows,
+    eta_series,
+    roc_rows,
+    split_bags,
+    task3_metrics,
+)
 from tests.conftest import micro_params
 from tests.test_domain import GaussianPosterior
 from tests.test_relative import OUT_BOX, SOURCE_BOXES, uniform_in
@@ -136,6 +146,23 @@ def test_auc_grows_to_one_and_the_false_alarm_rate_holds_on_new_seeds(synthetic)
     wrong, _ = sweep.calibrate(100, 0.05, seed=9, fresh=False)
     bad, _ = sweep.check_false_alarms(wrong, 100, seed=9, fresh=True)
     assert bad.exceeds_alpha and bad.rate > 0.9
+    # its power: separable sources, so most targets with a large out-of-ODD share are flagged
+    floor = metrics["odd"]["detects_from_eta"]
+    rates = {eta: metrics["eta"][f"{eta:g}"]["flagged_rate_fresh"] for eta in ETAS}
+    assert floor is not None and floor < ETAS[-1] and all(rates[e] >= DETECTED for e in ETAS if e >= floor), rates
+
+
+@pytest.mark.parametrize(
+    ("rates", "floor"),
+    [
+        ({0.0: 0.05, 0.1: 0.2, 0.3: 0.6, 0.5: 0.4, 0.7: 0.8, 1.0: 1.0}, 0.7),  # a dip at 0.5: detected from 0.7 only
+        ({0.0: 0.05, 0.1: 0.5, 0.5: 0.9, 1.0: 1.0}, 0.1),
+        ({0.0: 0.9, 0.5: 0.1, 1.0: 0.53}, 1.0),  # η = 0 is never a detection
+        ({0.0: 0.05, 0.5: 0.1, 1.0: 0.2}, None),
+    ],
+)
+def test_detection_floor_is_the_smallest_eta_flagged_from_there_on(rates, floor):
+    assert detection_floor(rates) == floor
 
 
 def test_the_metrics_name_the_target_kind_of_every_figure(synthetic):

@@ -42,6 +42,8 @@ __all__ = [
     "split_bags",
     "bag_members",
     "build_sweep",
+    "DETECTED",
+    "detection_floor",
     "task3_metrics",
     "eta_rows",
     "eta_series",
@@ -193,6 +195,26 @@ def _eta_key(eta: float) -> str:
     return f"{eta:g}"
 
 
+#: the ODD decision detects an out-of-ODD share η when it flags at least this share of the targets at η
+DETECTED = 0.5
+
+
+def detection_floor(flagged_rates: Mapping[float, float]) -> float | None:
+    """The smallest η > 0 from which the ODD decision flags ≥ :data:`DETECTED` of the targets at that η and every
+    larger one (``flagged_rates``: η → share of targets flagged), or ``None`` when not even the largest η qualifies.
+
+    The power of the decision in one number: with α the false-alarm rate at η = 0, targets with an out-of-ODD share
+    of at least this η are flagged more often than not. ``None`` is the warning a user needs: the decision keeps its
+    false-alarm promise but detects nothing.
+    """
+    floor = None
+    for eta in sorted((e for e in flagged_rates if e > 0), reverse=True):
+        if flagged_rates[eta] < DETECTED:
+            break
+        floor = float(eta)
+    return floor
+
+
 def task3_metrics(
     model_name: str,
     n_points: int,
@@ -207,7 +229,7 @@ def task3_metrics(
     """``reports/task3/metrics.json``: the setting (n_W = ``n_points``, the true λ = ``weights``, bag and pool
     sizes), the ODD decision (the target kind it was
     calibrated on, α, rank, threshold; its false-alarm rate on the sweep's η = 0 targets and on ``check``'s targets
-    of new seeds, each with its Clopper–Pearson interval) and, per η, every figure of :data:`PER_ETA` for each
+    of new seeds, each with its Clopper–Pearson interval; its power, :func:`detection_floor` on the same kind) and, per η, every figure of :data:`PER_ETA` for each
     target kind in ``experiments`` (``kind → experiments``) as ``<figure>_<kind>``."""
     if calibrated_on not in experiments:
         raise ValueError(f"the detector was calibrated on {calibrated_on} targets, which the sweep did not run")
@@ -219,6 +241,9 @@ def task3_metrics(
         for kind, summary in summaries.items():
             row |= {f"{f}_{kind}": summary[key].get(f) for f in PER_ETA}
         per_eta[key] = row
+    rates = {
+        e: summaries[calibrated_on][_eta_key(e)]["flagged_rate"] for e in {x.eta for x in experiments[calibrated_on]}
+    }
     in_sweep = FalseAlarmCheck.of(
         detector.decide_many([e.relative_gap for e in experiments[calibrated_on] if e.eta == 0.0]),
         detector.false_alarm_rate,
@@ -247,6 +272,8 @@ def task3_metrics(
             "threshold": detector.threshold,
             "false_alarms_sweep": in_sweep.to_dict(),
             "false_alarms_new_seeds": check.to_dict(),
+            # power: the smallest out-of-ODD share flagged in most targets (null: the decision detects nothing)
+            "detects_from_eta": detection_floor(rates),
         },
         "sweep_seconds": seconds,
         "eta": per_eta,

@@ -103,3 +103,22 @@ def test_bad_temperatures_are_refused() -> None:
             model.set_temperature(torch.tensor(bad))
     with pytest.raises(ValueError, match="base points"):
         fit_temperature(torch.zeros(1, 1, 2), torch.zeros(1, 1))
+
+
+def test_saved_model_keeps_its_temperature_and_an_older_file_is_named(tmp_path) -> None:
+    from components.posterior.store import load_npe, save_npe
+
+    model = _random_model(1, 2)
+    model.set_temperature(torch.tensor([1.2, 0.9]))
+    path = tmp_path / "model.pt"
+    save_npe(path, model, backbone="toy", backbone_options={})
+    loaded, _ = load_npe(path)
+    np.testing.assert_allclose(loaded.temperature.numpy(), [1.2, 0.9], rtol=1e-6)
+    # a file written before the base scale existed (no τ buffers): a clear error, not torch's key listing
+    blob = torch.load(path, weights_only=True)
+    blob["state_dict"] = {
+        k: v for k, v in blob["state_dict"].items() if not k.startswith("flows.0.transform.transforms.3")
+    }
+    torch.save(blob, tmp_path / "old.pt")
+    with pytest.raises(ValueError, match=r"old\.pt: its weights do not fit .*missing .*re-run the train stage"):
+        load_npe(tmp_path / "old.pt")

@@ -50,6 +50,11 @@ def test_train_logs_the_grid_in_mlflow_and_saves_a_loadable_model(project, monke
     theta = torch.tensor([[50.0, 10.0, 20.0, 30.0, 40.0, 50.0]])
     x = torch.zeros(1, header["features"])
     assert torch.isfinite(model.log_prob(theta, x)).all()
+    # the base scale τ fitted on the validation split (train.temperature) is saved with the model and reported
+    names = header["box"]["names"]
+    tau = [metrics[f"temperature.{name}"] for name in names]
+    np.testing.assert_allclose(model.temperature.numpy(), tau, rtol=1e-6)
+    assert all(t > 0 for t in tau) and tau != [1.0] * len(tau) and metrics["heldout_nll_gain"] >= 0
 
     train_model("cnn", 8, str(params))  # a backbone trained jointly with the flow
     cnn, h = load_npe(folder / "models/cnn-8/model.pt")
@@ -67,7 +72,7 @@ def test_train_logs_the_grid_in_mlflow_and_saves_a_loadable_model(project, monke
     child = children["cues-16"]
     assert child.data.tags["mlflow.parentRunId"] == parents[0].info.run_id
     assert child.data.params["backbone"] == "cues" and child.data.params["size"] == "16"
-    assert {"test_nll", "info_gain_nats", "wall_seconds"} <= set(child.data.metrics)
+    assert {"test_nll", "info_gain_nats", "wall_seconds", "temperature.cloudiness"} <= set(child.data.metrics)
     assert len(client.get_metric_history(child.info.run_id, "val_loss")) == 3
     assert {a.path for a in client.list_artifacts(child.info.run_id)} >= {"loss.png", "metrics.json", "model.pt"}
     assert child.data.tags["data_hash"] and child.data.tags["dvc_stage"] == "train@cues-16"

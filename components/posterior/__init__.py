@@ -5,10 +5,11 @@
 * :mod:`~components.posterior.mixture` — seeded sampling of zuko flows, the equal-weight mixture of an ensemble;
 * :mod:`~components.posterior.loss` — the NPE loss (physical units) and balanced NPE's penalty;
 * :mod:`~components.posterior.checkpoint` — atomic checkpoint files;
-* :mod:`~components.posterior.train` — :func:`train` with :class:`TrainingConfig`, returning a :class:`History`.
+* :mod:`~components.posterior.train` — :func:`train` with :class:`TrainingConfig`, returning a :class:`History`;
+* :mod:`~components.posterior.temperature` — post-hoc calibration: the flows' base scale τ fitted on held-out pairs.
 
-Used by the ``train``, ``variant``, ``export`` and ``export-variant`` stages (``metrics`` and ``settings`` by ``train``
-and ``variant`` only).
+Used by the ``train``, ``variant``, ``export`` and ``export-variant`` stages (``metrics``, ``settings`` and ``temperature`` by
+``train`` and ``variant`` only).
 """
 
 from components.posterior.bijection import IntervalBox, ScaledLogit, as_interval_box

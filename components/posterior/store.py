@@ -81,6 +81,19 @@ def load_npe(path: str | Path) -> tuple[NPE, dict[str, Any]]:
         embedding = get_backbone(header["backbone"], **header["backbone_options"])
     input_shape = tuple(header["input_shape"]) if header["input_shape"] is not None else None
     model = NPE(embedding, header["features"], box, FlowConfig(**flow), input_shape=input_shape)
-    model.load_state_dict(blob["state_dict"])
+    try:
+        model.load_state_dict(blob["state_dict"])
+    except RuntimeError as e:  # e.g. a file of an older pidc, without the flows' base scale τ
+        missing = sorted(set(model.state_dict()) - set(blob["state_dict"]))
+        unexpected = sorted(set(blob["state_dict"]) - set(model.state_dict()))
+        what = (
+            f"missing {missing[:4]}, unexpected {unexpected[:4]}{', …' if len(missing) > 4 or len(unexpected) > 4 else ''}"
+            if missing or unexpected
+            else str(e).strip().splitlines()[-1].strip()  # same names, other shapes: torch's line naming one
+        )
+        raise ValueError(
+            f"{path}: its weights do not fit this pidc's model ({what}): a file of another pidc version; "
+            "re-run the train stage"
+        ) from None
     model.eval()
     return model, header

@@ -13,6 +13,8 @@ Levers (``--setting NAME``, several allowed):
 * ``cues-v2-<n>``: all 241 cues;
 * ``…-e<k>``: ``k`` epochs instead of the pipeline's (``params.yaml`` ``train`` with its sample budget);
 * ``…-ens<k>``: an equal-weight ensemble of ``k`` flows;
+* ``…-n<σ>``: Gaussian noise of standard deviation σ added to the standardized inputs while training (a
+  regularizer; off at evaluation);
 * ``…-t``: the base temperature τ fitted on the validation split after training (``train.temperature``,
   :mod:`components.posterior.temperature`); without it τ = 1, whatever ``params.yaml`` says.
 
@@ -51,7 +53,7 @@ from components.posterior.settings import flow_config, training_config  # noqa: 
 from components.posterior.temperature import calibrate  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 
-_SETTING = re.compile(r"^cues-(v1|v2)-(\d+)(?:-ens(\d+))?(?:-e(\d+))?(-t)?$")
+_SETTING = re.compile(r"^cues-(v1|v2)-(\d+)(?:-ens(\d+))?(?:-e(\d+))?(?:-n([0-9.]+))?(-t)?$")
 V1_COLUMNS = 80
 
 
@@ -60,15 +62,27 @@ def parse_setting(name: str) -> dict:
     grammar otherwise."""
     m = _SETTING.match(name)
     if not m:
-        raise ValueError(f"setting {name!r}: expected cues-(v1|v2)-<size>[-ens<k>][-e<epochs>][-t]")
-    v, size, ens, ep, temp = m.groups()
+        raise ValueError(f"setting {name!r}: expected cues-(v1|v2)-<size>[-ens<k>][-e<epochs>][-n<σ>][-t]")
+    v, size, ens, ep, noise, temp = m.groups()
     return {
         "version": v,
         "size": int(size),
         "ensemble": int(ens or 1),
         "epochs": int(ep) if ep else None,
+        "noise": float(noise) if noise else 0.0,
         "temperature": bool(temp),
     }
+
+
+class InputNoise(torch.nn.Module):
+    """x + σ·ε, ε ~ N(0, I), in training mode only (the inputs are already standardized by the NPE)."""
+
+    def __init__(self, sigma: float) -> None:
+        super().__init__()
+        self.sigma = sigma
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.sigma * torch.randn_like(x) if self.training else x
 
 
 def run(name: str, root: Path, samples: int, seed: int) -> dict:
@@ -86,7 +100,9 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
     tc = training_config(params.train, size=s["size"], trainable=False, seed=seed)
     if s["epochs"]:
         tc = dataclasses.replace(tc, epochs=s["epochs"])
-    model = NPE(None, x["train"].shape[1], params.box, fc, seed=seed)
+    f = x["train"].shape[1]
+    noise = InputNoise(s["noise"]) if s["noise"] else None
+    model = NPE(noise, f, params.box, fc, input_shape=(f,) if noise else None, seed=seed)
     t0 = time.perf_counter()
     history = train(
         model,

@@ -1,7 +1,7 @@
 """Task III (paper): the source and out-of-ODD bags of the test split, the sweep over η, and its metrics.
 
-Used by the ``task3`` stage, its benchmark and the scheduled monitoring (``flows/monitor.py``). The bags are the test images whose weather lies in a sub-box
-(``task3.bags``); every image is characterized once by the registry model (its context), and the sweep
+Used by the ``task3`` stage, its benchmark and the scheduled monitoring (``flows/monitor.py``). The bags are the
+test images whose weather lies in a sub-box (``task3.bags``); every image is characterized once by the registry model (its context), and the sweep
 (:class:`~components.domains.sweep.NoiseSweep`) mixes them into targets at each noise level η.
 
 Bags share no image, by construction (:func:`split_bags`): every test image belongs to at most one bag — the first,
@@ -227,10 +227,10 @@ def task3_metrics(
     seconds: float,
 ) -> dict:
     """``reports/task3/metrics.json``: the setting (n_W = ``n_points``, the true λ = ``weights``, bag and pool
-    sizes), the ODD decision (the target kind it was
-    calibrated on, α, rank, threshold; its false-alarm rate on the sweep's η = 0 targets and on ``check``'s targets
-    of new seeds, each with its Clopper–Pearson interval; its power, :func:`detection_floor` on the same kind) and, per η, every figure of :data:`PER_ETA` for each
-    target kind in ``experiments`` (``kind → experiments``) as ``<figure>_<kind>``."""
+    sizes), the ODD decision (the target kind it was calibrated on, α, rank, threshold; its false-alarm rate on the
+    sweep's η = 0 targets and on ``check``'s targets of new seeds, each with its Clopper–Pearson interval; its power,
+    :func:`detection_floor` on the same kind) and, per η, every figure of :data:`PER_ETA` for each target kind in
+    ``experiments`` (``kind → experiments``) as ``<figure>_<kind>``."""
     if calibrated_on not in experiments:
         raise ValueError(f"the detector was calibrated on {calibrated_on} targets, which the sweep did not run")
     summaries = {kind: summarize_sweep(es, detector) for kind, es in experiments.items()}
@@ -241,9 +241,7 @@ def task3_metrics(
         for kind, summary in summaries.items():
             row |= {f"{f}_{kind}": summary[key].get(f) for f in PER_ETA}
         per_eta[key] = row
-    rates = {
-        e: summaries[calibrated_on][_eta_key(e)]["flagged_rate"] for e in {x.eta for x in experiments[calibrated_on]}
-    }
+    rates = {float(key): row[f"flagged_rate_{calibrated_on}"] for key, row in per_eta.items()}
     in_sweep = FalseAlarmCheck.of(
         detector.decide_many([e.relative_gap for e in experiments[calibrated_on] if e.eta == 0.0]),
         detector.false_alarm_rate,

@@ -9,12 +9,14 @@ all from ``--samples`` posterior draws per test image, seeded.
 
 Levers (``--setting NAME``, several allowed):
 
-* ``cues-v1-<n>``: the 80 version-1 cues (the first 80 columns of the version-2 cache), ``n`` training images;
-* ``cues-v2-<n>``: all 241 cues;
+* ``cues-v1-<n>``: the 80 version-1 cues (the first 80 columns of the cache), ``n`` training images;
+* ``cues-v2-<n>``: the 241 version-2 cues (the first 241 columns);
+* ``cues-v3-<n>``: all 273 cues of version 3 (the cache of today's ``cues``);
 * ``…-e<k>``: ``k`` epochs instead of the pipeline's (``params.yaml`` ``train`` with its sample budget);
 * ``…-ens<k>``: an equal-weight ensemble of ``k`` flows;
-* ``…-n<σ>``: Gaussian noise of standard deviation σ added to the standardized inputs while training (a
-  regularizer; off at evaluation);
+* ``…-n<σ>``: Gaussian noise of standard deviation σ added to the standardized inputs while training
+  (``TrainingConfig.input_noise``, a regularizer; off at evaluation); without it no noise, whatever ``params.yaml``
+  says (``train.input_noise``);
 * ``…-t``: the base temperature τ fitted on the validation split after training (``train.temperature``,
   :mod:`components.posterior.temperature`); without it τ = 1, whatever ``params.yaml`` says.
 
@@ -53,8 +55,9 @@ from components.posterior.settings import flow_config, training_config  # noqa: 
 from components.posterior.temperature import calibrate  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 
-_SETTING = re.compile(r"^cues-(v1|v2)-(\d+)(?:-ens(\d+))?(?:-e(\d+))?(?:-n([0-9.]+))?(-t)?$")
-V1_COLUMNS = 80
+_SETTING = re.compile(r"^cues-(v1|v2|v3)-(\d+)(?:-ens(\d+))?(?:-e(\d+))?(?:-n([0-9.]+))?(-t)?$")
+#: the leading columns of today's cues cache that each cue version computed
+COLUMNS = {"v1": 80, "v2": 241, "v3": None}
 
 
 def parse_setting(name: str) -> dict:
@@ -62,7 +65,7 @@ def parse_setting(name: str) -> dict:
     grammar otherwise."""
     m = _SETTING.match(name)
     if not m:
-        raise ValueError(f"setting {name!r}: expected cues-(v1|v2)-<size>[-ens<k>][-e<epochs>][-n<σ>][-t]")
+        raise ValueError(f"setting {name!r}: expected cues-(v1|v2|v3)-<size>[-ens<k>][-e<epochs>][-n<σ>][-t]")
     v, size, ens, ep, noise, temp = m.groups()
     return {
         "version": v,
@@ -74,22 +77,11 @@ def parse_setting(name: str) -> dict:
     }
 
 
-class InputNoise(torch.nn.Module):
-    """x + σ·ε, ε ~ N(0, I), in training mode only (the inputs are already standardized by the NPE)."""
-
-    def __init__(self, sigma: float) -> None:
-        super().__init__()
-        self.sigma = sigma
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x + self.sigma * torch.randn_like(x) if self.training else x
-
-
 def run(name: str, root: Path, samples: int, seed: int) -> dict:
     s = parse_setting(name)
     params = load_params(root / "params.yaml")
     splits = {k: dataset.open_split(root / params.data.root, k) for k in dataset.SPLITS}
-    cols = V1_COLUMNS if s["version"] == "v1" else None
+    cols = COLUMNS[s["version"]]
 
     def feats(split: dataset.Split, stop: int | None = None) -> np.ndarray:
         return cache.open_features(root / "features", "cues", split, stop=stop)[:, :cols].astype(np.float32)
@@ -97,12 +89,12 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
     x = {"train": feats(splits["train"], s["size"]), "val": feats(splits["val"]), "test": feats(splits["test"])}
     theta = {k: splits[k].theta[: len(v)].astype(np.float32) for k, v in x.items()}
     fc = flow_config(params.train, size=s["size"], ensemble=s["ensemble"])
-    tc = training_config(params.train, size=s["size"], trainable=False, seed=seed)
+    tc = dataclasses.replace(
+        training_config(params.train, size=s["size"], trainable=False, seed=seed), input_noise=s["noise"]
+    )
     if s["epochs"]:
         tc = dataclasses.replace(tc, epochs=s["epochs"])
-    f = x["train"].shape[1]
-    noise = InputNoise(s["noise"]) if s["noise"] else None
-    model = NPE(noise, f, params.box, fc, input_shape=(f,) if noise else None, seed=seed)
+    model = NPE(None, x["train"].shape[1], params.box, fc, seed=seed)
     t0 = time.perf_counter()
     history = train(
         model,

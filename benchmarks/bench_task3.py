@@ -1,11 +1,18 @@
-"""The Task III sweep on the project's registry model: 330 experiments (11 η × 30) and the ODD calibration.
+"""Task III on the project's registry model, side by side for each way of characterizing a bag (``task3.smoothing``).
 
-Builds the sweep exactly as the ``task3`` stage does (:func:`components.domains.task3.build_sweep`: the bags' contexts computed
-once, then every experiment = a target drawn and related to the three sources with n_W points, CVXPY solve, chance
-baseline) and times (a) the contexts, (b) the calibration targets, (c) the 330 experiments. Needs the pipeline's
-registry/ and features/ (``dvc repro evaluate`` at least).
+Builds the sweep exactly as the ``task3`` stage does (:func:`components.domains.task3.build_sweep`: the bags'
+contexts computed once, then every experiment = a target drawn and related to the sources with n_W points, CVXPY
+solve, chance baseline), once per smoothing (``none``: the paper's exact mixture of posteriors; ``scott``: the kernel
+density of :mod:`components.domains.kernel`), on the same bags, images and seeds. For each: median d_E at η = 0 for
+the paper's and for fresh targets, the fresh targets' ODD AUC at each η, the false-alarm rate of the decision
+calibrated on fresh in-ODD targets measured on new seeds (Clopper–Pearson interval), and the seconds each part took.
+Needs the pipeline's registry/ and features/ (``dvc repro evaluate`` at least).
 
-    .venv/bin/python benchmarks/bench_task3.py [--params params.yaml] [--model cnn-3000]
+    .venv/bin/python benchmarks/bench_task3.py [--params params.yaml] [--model champion] [--smoothing none scott]
+        [--bandwidth-scale 0.5 1 2 3 4] [--n-points 16 64]
+
+``--bandwidth-scale`` and ``--n-points`` replace ``task3.bandwidth_scale`` and ``task3.n_points``: every combination
+is measured (the scale only matters for ``scott``).
 
 Prints a table and one JSON line (``{"benchmark": "task3", ...}``) with machine information.
 """
@@ -21,70 +28,77 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import yaml  # noqa: E402
 from machine import machine_info  # noqa: E402
 
 from components.core.config import load_params  # noqa: E402
 from components.core.paths import ProjectPaths  # noqa: E402
+from components.domains.sweep import SMOOTHINGS, summarize_sweep  # noqa: E402
 from components.domains.task3 import build_sweep  # noqa: E402
+from components.export.lookup import load_registered, read_champion  # noqa: E402
+
+
+def measure(params, paths, model, smoothing: str, scale: float, n_points: int) -> dict:
+    t = params.task3
+    changes = {"smoothing": smoothing, "fresh_targets": True, "bandwidth_scale": scale, "n_points": n_points}
+    p = params.model_copy(update={"task3": t.model_copy(update=changes)})
+    t0 = time.perf_counter()
+    sweep, _, name = build_sweep(p, paths, model)
+    out: dict = {"smoothing": smoothing, "bandwidth_scale": scale, "n_points": n_points, "model": name}
+    out |= {"bags": sweep.sizes, "build_s": time.perf_counter() - t0}
+    t0 = time.perf_counter()
+    detector, _ = sweep.calibrate(t.calibration_targets, t.false_alarm_rate, params.seed, fresh=True)
+    check, _ = sweep.check_false_alarms(detector, t.false_alarm_targets, params.seed, fresh=True)
+    out["calibration_s"] = time.perf_counter() - t0
+    out["false_alarms"] = check.to_dict()
+    for kind in ("paper", "fresh"):
+        t0 = time.perf_counter()
+        experiments = [sweep.run(eta, r, params.seed, kind == "fresh") for eta in t.etas for r in range(t.repetitions)]
+        out[f"{kind}_s"] = time.perf_counter() - t0
+        summary = summarize_sweep(experiments, detector)
+        out[kind] = {
+            eta: {k: row[k] for k in ("d_e_median", "flagged_rate", "auc") if k in row} for eta, row in summary.items()
+        }
+    return out
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--params", type=Path, default=ROOT / "params.yaml")
-    parser.add_argument("--model", help="registry model id (default: task3.model of the params file)")
+    parser.add_argument("--model", default="champion", help="registry model id, or champion (default)")
+    parser.add_argument("--smoothing", nargs="+", choices=SMOOTHINGS, default=list(SMOOTHINGS))
+    parser.add_argument("--bandwidth-scale", nargs="+", type=float, help="default: task3.bandwidth_scale")
+    parser.add_argument("--n-points", nargs="+", type=int, help="default: task3.n_points")
     args = parser.parse_args()
-    params_file = args.params
-    if args.model:  # a copy of the params with another model, beside the original (same project folder)
-        data = yaml.safe_load(params_file.read_text())
-        data["task3"]["model"] = args.model
-        params_file = params_file.resolve().parent / f".bench-task3-{args.model}.yaml"
-        params_file.write_text(yaml.safe_dump(data))
-    try:
-        params = load_params(params_file)
-        t = params.task3
-        t0 = time.perf_counter()
-        sweep, members, model = build_sweep(params, ProjectPaths.of(params, params_file))
-        t_build = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        sweep.calibrate(t.calibration_targets, t.false_alarm_rate, params.seed, fresh=t.fresh_targets)
-        t_cal = time.perf_counter() - t0
-        timed = {}
-        for fresh in (False, True) if t.fresh_targets else (False,):
-            t0 = time.perf_counter()
-            n = 0
-            for eta in t.etas:
-                for r in range(t.repetitions):
-                    sweep.run(eta, r, params.seed, fresh)
-                    n += 1
-            timed["fresh" if fresh else "paper"] = time.perf_counter() - t0
-        t_sweep = timed["paper"]
-    finally:
-        if args.model:
-            params_file.unlink(missing_ok=True)
-    print(f"model {model}, bags {sweep.sizes}, n_W = {t.n_points}")
-    print("| part | seconds |\n|---|---|")
-    print(f"| bags' contexts (registry model, {sum(sweep.sizes)} images) | {t_build:.2f} |")
-    print(f"| ODD calibration ({t.calibration_targets} in-ODD targets) | {t_cal:.2f} |")
-    print(f"| sweep, the paper's targets ({n} experiments) | {t_sweep:.2f} |")
-    if "fresh" in timed:
-        print(f"| sweep, fresh targets ({n} experiments) | {timed['fresh']:.2f} |")
-    print(f"| per experiment (paper) | {1000 * t_sweep / n:.1f} ms |")
+    params = load_params(args.params)
+    paths = ProjectPaths.of(params, args.params)
+    model_id = read_champion(paths.registry)["model"] if args.model == "champion" else args.model
+    model = load_registered(model_id, paths.registry)
+    t = params.task3
+    scales, points = args.bandwidth_scale or [t.bandwidth_scale], args.n_points or [t.n_points]
+    results = [
+        measure(params, paths, model, s, scale, n)
+        for s in args.smoothing
+        for scale in (scales if s == "scott" else scales[:1])
+        for n in points
+    ]
+    etas = [f"{e:g}" for e in t.etas if e > 0]
+    print(f"model {model_id}, bags {results[0]['bags']}, {t.repetitions} targets per η")
     print(
-        json.dumps(
-            {
-                "benchmark": "task3",
-                "model": model,
-                "bags": sweep.sizes,
-                "experiments": n,
-                "contexts_s": t_build,
-                "calibration_s": t_cal,
-                "sweep_s": t_sweep,
-                "fresh_sweep_s": timed.get("fresh"),
-                **machine_info(),
-            }
-        )
+        "| smoothing | bandwidth scale | n_W | d_E η=0 paper | d_E η=0 fresh | fresh AUC at η = "
+        + " / ".join(etas)
+        + " | false alarms (new seeds) | seconds |"
     )
+    print("|---|---|---|---|---|---|---|---|")
+    for r in results:
+        fa = r["false_alarms"]
+        auc = " / ".join(f"{r['fresh'][e]['auc']:.2f}" for e in etas)
+        seconds = r["build_s"] + r["calibration_s"] + r["paper_s"] + r["fresh_s"]
+        print(
+            f"| {r['smoothing']} | {r['bandwidth_scale']:g} | {r['n_points']} | {r['paper']['0']['d_e_median']:.3g} | "
+            f"{r['fresh']['0']['d_e_median']:.3f} | {auc} | "
+            f"{fa['flagged']}/{fa['n']} = {fa['rate']:.3f} [{fa['ci_low']:.3f}, {fa['ci_high']:.3f}] | {seconds:.0f} |"
+        )
+    print(json.dumps({"benchmark": "task3", "results": results, **machine_info()}))
 
 
 if __name__ == "__main__":

@@ -49,10 +49,17 @@ def textures() -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def renders() -> dict[str, np.ndarray]:
-    """Four scenes rendered by the procedural simulator under clear, foggy and night weather."""
+    """Four scenes rendered by the procedural simulator under clear, foggy, night, rainy and wet (puddles) weather."""
     sim = ProceduralSimulator(128, 128)
     out = {}
-    for key, change in {"clear": {}, "fog": {"fog_density": 80.0}, "night": {"sun_altitude_angle": -40.0}}.items():
+    changes = {
+        "clear": {},
+        "fog": {"fog_density": 80.0},
+        "night": {"sun_altitude_angle": -40.0},
+        "rain": {"precipitation": 80.0},
+        "wet": {"precipitation_deposits": 90.0},
+    }
+    for key, change in changes.items():
         w = {**CLEAR, **change}
         out[key] = np.stack([sim.render(w, seeding.derive_seed(SEED, "test", "scene", i)) for i in range(4)])
     return out
@@ -129,7 +136,7 @@ def test_single_image_is_a_batch_of_one(textures: np.ndarray) -> None:
 # -- cues -----------------------------------------------------------------------------------------------
 def test_cues_names_match_dim() -> None:
     b = get_backbone("cues")
-    assert b.dim == len(FEATURE_NAMES) == len(set(FEATURE_NAMES)) == 241
+    assert b.dim == len(FEATURE_NAMES) == len(set(FEATURE_NAMES)) == 273
 
 
 def test_cues_mirror_symmetry(textures: np.ndarray) -> None:
@@ -150,6 +157,10 @@ def test_cues_mirror_symmetry(textures: np.ndarray) -> None:
     for q in (10, 50, 90):
         left, right = FEATURE_NAMES.index(f"left_wall_log_y_q{q}"), FEATURE_NAMES.index(f"right_wall_log_y_q{q}")
         perm[left], perm[right] = right, left
+    for name in FEATURE_NAMES:  # lines slanted one way (╱) mirror into the other (╲)
+        if name.startswith("ridge_slash_"):
+            slash, backslash = FEATURE_NAMES.index(name), FEATURE_NAMES.index(name.replace("slash", "backslash"))
+            perm[slash], perm[backslash] = backslash, slash
     np.testing.assert_allclose(g, f[:, perm], rtol=1e-3, atol=2e-3)
 
 
@@ -186,6 +197,29 @@ def test_cues_respond_to_rendered_weather(renders: dict[str, np.ndarray]) -> Non
     assert (fog[:, col("contrast_row3")] < clear[:, col("contrast_row3")]).all()
     assert (night[:, col("v_q50")] < clear[:, col("v_q50")]).all()  # night is dark
     assert (night[:, col("v_hist0")] > clear[:, col("v_hist0")] + 0.05).all()
+
+
+def test_cues_see_rendered_rain_streaks_and_puddles(renders: dict[str, np.ndarray]) -> None:
+    """Version 3: rain streaks add thin vertical lines; puddles (deposits 90 %) darken the road under a mirror of the
+    sky, so fewer of its pixels are as blue as the sky — in each of the four scenes."""
+    b = get_backbone("cues")
+    clear, rain, wet = (b.extract(renders[k]) for k in ("clear", "rain", "wet"))
+    col = FEATURE_NAMES.index
+    assert (rain[:, col("ridge_vertical_frac0.005")] > clear[:, col("ridge_vertical_frac0.005")]).all()
+    assert (wet[:, col("puddle_mid_sky_blue_frac")] < clear[:, col("puddle_mid_sky_blue_frac")] - 0.04).all()
+
+
+def test_cues_ridges_find_thin_lines_by_direction() -> None:
+    """One-pixel bright lines on grey: vertical ones answer the vertical detector most, ╱ ones the slash detector."""
+    grey = np.full((2, 128, 128, 3), 60, np.uint8)
+    grey[0, :, ::8] = 200  # vertical lines every 8 columns
+    for i in range(128):
+        grey[1, i, [(c - i) % 128 for c in range(0, 128, 8)]] = 200  # ╱: column falls as the row rises
+    f = get_backbone("cues").extract(grey)
+    col = FEATURE_NAMES.index
+    vertical, slash, backslash = (f[:, col(f"ridge_{d}_log_mean")] for d in ("vertical", "slash", "backslash"))
+    # along its own line a detector averages the full contrast; across another, one pixel in five
+    assert vertical[0] > max(slash[0], backslash[0]) + 1.0 and slash[1] > max(vertical[1], backslash[1]) + 1.0
 
 
 # -- tiny -----------------------------------------------------------------------------------------------

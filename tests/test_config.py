@@ -172,6 +172,8 @@ MISSING = [
     "task2.modes",
     "task3.bags",
     "task3.bags.b1.max_images",
+    "task3.smoothing",
+    "train.input_noise_max_size",
     "evaluate.samples",
     "simulator.carla.fov",
     "monitor",
@@ -360,9 +362,10 @@ def test_settings_set_every_field_of_the_library_classes(profile, trainable, mon
     assert set(flow_kw) == {f.name for f in dataclasses.fields(FlowConfig)}
     assert set(train_kw) == {f.name for f in dataclasses.fields(TrainingConfig)}
     assert dataclasses.asdict(flow) == {**t.flow.model_dump(), "hidden_features": tuple(t.flow.hidden_features)}
-    same = {f.name for f in dataclasses.fields(TrainingConfig)} - {"epochs", "seed", "patience"}
+    same = {f.name for f in dataclasses.fields(TrainingConfig)} - {"epochs", "seed", "patience", "input_noise"}
     assert {k: getattr(cfg, k) for k in same} == {k: getattr(t, k) for k in same}
     assert cfg.patience == settings.patience_for(t, t.sizes[0])
+    assert cfg.input_noise == settings.input_noise_for(t, t.sizes[0], trainable=trainable)
     assert cfg.epochs == settings.epochs_for(t, t.sizes[0], trainable=trainable) and cfg.seed == 11
 
 
@@ -402,6 +405,13 @@ def test_small_training_sets_train_longer_through_a_smaller_flow():
     assert patience_for(t, big // 4) == math.ceil(4 * t.patience)
     assert epochs_for(t, big // 4, trainable=False) == min(4 * t.epochs, math.ceil(t.sample_budget / (big // 4)))
     assert flow_config(t, size=big // 4).hidden_features == hidden_for(t, big // 4)
+    # input noise: σ ∝ 1/√n up to input_noise_max_size images, only on frozen features
+    from components.posterior.settings import input_noise_for
+
+    assert t.input_noise > 0 and input_noise_for(t, big, trainable=False) == t.input_noise
+    assert input_noise_for(t, big // 4, trainable=False) == pytest.approx(2 * t.input_noise)  # σ ∝ 1/√n
+    assert input_noise_for(t, t.input_noise_max_size + 1, trainable=False) == 0.0
+    assert input_noise_for(t, big // 2, trainable=True) == 0.0
 
 
 def test_settings_refuse_to_leave_a_field_to_its_default():

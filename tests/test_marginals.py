@@ -111,6 +111,19 @@ def test_overconfident_posterior_undercovers_and_a_wider_one_has_wider_intervals
     assert (s_exact.log_ratio.mean(0) > s_wide.log_ratio.mean(0)).all()
 
 
+def test_a_truth_beyond_every_draw_costs_log_n_nats_not_the_kernel_tail():
+    """The defensive mixture's floor: n draws far from the truth give the information gain −log n (the kernel's tail
+    alone would give thousands of nats below it); truths inside the draws keep the kernel estimate."""
+    rng = seeding.rng(5, "test", "marginals", "floor")
+    draws = 20.0 + rng.normal(size=(40, 500, 2))  # sd 1 around 20
+    truth = np.tile([[70.0, 20.0]], (40, 1))  # parameter a: 50 sd away; b: at the mode
+    scores = marginals.marginal_scores(draws, truth, BOX2)
+    np.testing.assert_allclose(scores.log_ratio[:, 0], -math.log(500), atol=1e-6)
+    kde = marginals.reflected_kde_log_density(draws, truth, BOX2) + math.log(100.0)
+    assert kde[:, 0].max() < -100  # the tail of the kernel
+    np.testing.assert_allclose(scores.log_ratio[:, 1], kde[:, 1], atol=0.003)  # resolved: within ~1/n
+
+
 def test_day_night_report_of_the_weather_box():
     box = weather.Box.full()
     rng = seeding.rng(4, "test", "marginals", "report")

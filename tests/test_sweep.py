@@ -154,6 +154,35 @@ def test_fresh_targets_use_held_out_images_of_the_sources_weather():
         )
 
 
+def test_sharp_posteriors_need_the_kernel_characterization_for_fresh_targets():
+    """Posteriors 100× narrower than a source box (σ = 0.02, boxes 2 wide), bags of 21–27 images: the exact mixture is
+    isolated peaks, so a fresh in-ODD target's draws miss every source peak — λ̂ lands on a vertex whatever the target
+    (d_E ≈ 0.62) and out-of-ODD targets are not told apart (AUC ≈ 0.5). The kernel characterization (Scott's
+    bandwidth, the same for every domain) recovers λ and separates η = 0.3 from η = 0; on the paper's targets (the
+    sources' own images) both give λ̂ = λ."""
+    r = rng(3, "test", "sweep", "sharp")
+    sizes = (27, 21, 26)
+    sources = [uniform_in(box, n, r) for box, n in zip(SOURCE_BOXES, sizes, strict=True)]
+    pools = [uniform_in(box, 3 * n, r) for box, n in zip(SOURCE_BOXES, sizes, strict=True)]
+    out = uniform_in(OUT_BOX, 60, r)
+    summary, paper = {}, {}
+    for smoothing in ("none", "scott"):
+        sweep = NoiseSweep(GaussianPosterior(0.02), out, sources, LAMBDA, 16, pools, smoothing=smoothing, seed=1)
+        detector, _ = sweep.calibrate(60, 0.1, seed=5, fresh=True)
+        experiments = [sweep.run(eta, k, seed=4, fresh=True) for eta in (0.0, 0.3) for k in range(40)]
+        summary[smoothing] = summarize_sweep(experiments, detector)
+        paper[smoothing] = max(sweep.run(0.0, k, seed=4).d_e for k in range(10))
+    assert summary["none"]["0"]["d_e_median"] > 0.5 and summary["none"]["0.3"]["auc"] < 0.7
+    assert summary["scott"]["0"]["d_e_median"] < 0.2 and summary["scott"]["0.3"]["auc"] > 0.85
+    assert paper["none"] < 0.02 and paper["scott"] < 0.02
+    with pytest.raises(ValueError, match="smoothing must be one of"):
+        NoiseSweep(GaussianPosterior(0.02), out, sources, LAMBDA, smoothing="silverman")
+    with pytest.raises(ValueError, match="draws_per_image must be an integer ≥ 2"):
+        NoiseSweep(GaussianPosterior(0.02), out, sources, LAMBDA, smoothing="scott", draws_per_image=1)
+    with pytest.raises(ValueError, match="bandwidth_scale must be a positive number"):
+        NoiseSweep(GaussianPosterior(0.02), out, sources, LAMBDA, smoothing="scott", bandwidth_scale=0.0)
+
+
 def test_false_alarm_check_uses_new_seeds_drawn_like_the_calibration(sweep):
     """The calibration, the sweep's η = 0 and the check's in-ODD targets come from three disjoint seed streams (no
     target is reused), and the check is deterministic."""

@@ -184,6 +184,11 @@ class TrainConfig(_Section):
     clip_norm: Annotated[float, Field(gt=0)] | None
     #: λ of balanced NPE (calibration beyond the paper; 0 = plain NPE)
     balance: Annotated[float, Field(ge=0)]
+    #: σ of Gaussian noise added to the frozen features while training (units of their standard deviation) at
+    #: ``scale_to`` images, × √(scale_to / size) for other sizes, none above ``input_noise_max_size`` images
+    #: (components/posterior/settings.py); 0 = none
+    input_noise: Annotated[float, Field(ge=0)]
+    input_noise_max_size: PositiveInt
     #: after training, fit the flows' base scale τ (one per parameter) on the validation split by maximum
     #: likelihood (post-hoc calibration, components/posterior/temperature.py); false: τ = 1
     temperature: bool
@@ -312,6 +317,13 @@ class Task3Config(_Section):
     #: beyond the paper: also run fresh targets (their in-ODD part from other test images of the sources' sub-boxes);
     #: the ODD decision is then calibrated and judged on them (see components.domains.sweep)
     fresh_targets: bool
+    #: how a bag's weather is characterized: ``scott``, the kernel density of ``draws_per_image`` posterior draws per
+    #: image with the sources' Scott bandwidth (components.domains.kernel); ``none``, the exact mixture of posteriors
+    #: (the paper's: isolated peaks when the posteriors are sharp and the bags small)
+    smoothing: Literal["scott", "none"]
+    draws_per_image: Annotated[int, Field(ge=2)]
+    #: the kernel's bandwidth in units of Scott's rule (smoothing: scott)
+    bandwidth_scale: Annotated[float, Field(gt=0)]
 
     @model_validator(mode="after")
     def _consistent(self) -> Task3Config:

@@ -42,13 +42,23 @@ from scipy.stats import binomtest
 
 from components.core.seeding import derive_seed, rng
 from components.domains.absolute import Domain, Posterior
-from components.domains.relative import OddDetector, SimplexLeastSquares, chance_baseline_gap, relate, simplex_distance
+from components.domains.kernel import KernelDomain, sources_bandwidth
+from components.domains.relative import (
+    Characterization,
+    OddDetector,
+    SimplexLeastSquares,
+    chance_baseline_gap,
+    relate,
+    simplex_distance,
+)
 from components.evaluate.diagnostics import roc_curve
 
-__all__ = ["Experiment", "FalseAlarmCheck", "NoiseSweep", "summarize_sweep", "experiments_by_eta"]
+__all__ = ["SMOOTHINGS", "Experiment", "FalseAlarmCheck", "NoiseSweep", "summarize_sweep", "experiments_by_eta"]
 
 #: confidence level of the false-alarm rate's Clopper–Pearson interval
 CONFIDENCE = 0.95
+#: how a bag is characterized (:class:`NoiseSweep`): the exact mixture of posteriors, or its kernel smoothing
+SMOOTHINGS = ("none", "scott")
 
 
 @dataclass(frozen=True)
@@ -119,6 +129,11 @@ class NoiseSweep:
         n_points: n_W, the points drawn from each target.
         fresh_pools: optional held-out observations of each source's weather (K arrays, each at least as large as
             its source bag): enables fresh targets (``run(..., fresh=True)``).
+        smoothing: how a bag is characterized: ``"none"``, the exact mixture of its posteriors
+            (:class:`~components.domains.absolute.Domain`, the paper's); ``"scott"``, the kernel density of
+            ``draws_per_image`` fixed posterior draws per image with ``bandwidth_scale`` × the sources' Scott
+            bandwidth (:class:`~components.domains.kernel.KernelDomain`; drawn once, stream
+            ``(seed, "sweep", "kernel")``).
     """
 
     def __init__(
@@ -129,7 +144,13 @@ class NoiseSweep:
         weights: Sequence[float],
         n_points: int = 16,
         fresh_pools: Sequence[np.ndarray] | None = None,
+        smoothing: str = "none",
+        draws_per_image: int = 64,
+        bandwidth_scale: float = 1.0,
+        seed: int = 0,
     ) -> None:
+        if smoothing not in SMOOTHINGS:
+            raise ValueError(f"smoothing must be one of {SMOOTHINGS}, got {smoothing!r}")
         bags = [np.asarray(out_of_odd)] + [np.asarray(s) for s in sources]
         for k, bag in enumerate(bags):
             if bag.ndim < 1 or bag.shape[0] == 0:
@@ -154,8 +175,25 @@ class NoiseSweep:
         self._offsets = np.cumsum([0] + self._sizes + self._pool_sizes)  # b₀, b₁…b_K, then the pools
         self._union = np.concatenate(bags + pools, axis=0)
         self.posterior = posterior
-        self.sources = [Domain(posterior, b) for b in bags[1:]]
+        self.smoothing = smoothing
         self._solver = SimplexLeastSquares()
+        if smoothing == "none":
+            self.sources: list[Characterization] = [Domain(posterior, b) for b in bags[1:]]
+            return
+        if (
+            isinstance(draws_per_image, bool)
+            or not isinstance(draws_per_image, (int, np.integer))
+            or draws_per_image < 2
+        ):
+            raise ValueError(f"draws_per_image must be an integer ≥ 2, got {draws_per_image!r}")
+        self._draws = np.asarray(
+            posterior.sample(self._union, int(draws_per_image), derive_seed(seed, "sweep", "kernel"))
+        )
+        per_bag = [self._draws[self._offsets[k] : self._offsets[k + 1]] for k in range(1, len(bags))]
+        if not (isinstance(bandwidth_scale, (int, float)) and 0 < bandwidth_scale < float("inf")):
+            raise ValueError(f"bandwidth_scale must be a positive number, got {bandwidth_scale!r}")
+        self.bandwidth = float(bandwidth_scale) * sources_bandwidth(per_bag)
+        self.sources = [KernelDomain(d, None, self.bandwidth) for d in per_bag]
 
     @property
     def sizes(self) -> list[int]:
@@ -188,8 +226,12 @@ class NoiseSweep:
                 w[self._offsets[k] : self._offsets[k + 1]] = (1.0 - eta) * lam / self._sizes[k]
         return w
 
-    def target(self, eta: float, seed: int, fresh: bool = False) -> Domain:
-        return Domain(self.posterior, self._union, self.target_weights(eta, seed, fresh))
+    def target(self, eta: float, seed: int, fresh: bool = False) -> Characterization:
+        """The target at noise level η, characterized as the sources are (see ``smoothing``)."""
+        w = self.target_weights(eta, seed, fresh)
+        if self.smoothing == "none":
+            return Domain(self.posterior, self._union, w)
+        return KernelDomain(self._draws, w, self.bandwidth)
 
     def run(self, eta: float, repetition: int, seed: int, fresh: bool = False) -> Experiment:
         """One experiment at noise level η (a fresh target when ``fresh``); deterministic in its arguments."""

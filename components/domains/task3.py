@@ -4,6 +4,10 @@ Used by the ``task3`` stage, its benchmark and the scheduled monitoring (``flows
 test images whose weather lies in a sub-box (``task3.bags``); every image is characterized once by the registry model (its context), and the sweep
 (:class:`~components.domains.sweep.NoiseSweep`) mixes them into targets at each noise level η.
 
+Each bag's weather is characterized as ``task3.smoothing`` says: the kernel density of ``task3.draws_per_image``
+posterior draws per image with one Scott bandwidth (:mod:`components.domains.kernel`, the default), or the paper's
+exact mixture of posteriors.
+
 Bags share no image, by construction (:func:`split_bags`): every test image belongs to at most one bag — the first,
 in the order b0, b1, b2, …, whose sub-box holds it (b0's box is disjoint from the sources' by the config) — so an
 image inside two source sub-boxes is given to the lower-numbered source and is neither in the other's bag nor in its
@@ -187,6 +191,10 @@ def build_sweep(
         t.weights,
         t.n_points,
         fresh_pools=fresh,
+        smoothing=t.smoothing,
+        draws_per_image=t.draws_per_image,
+        bandwidth_scale=t.bandwidth_scale,
+        seed=params.seed,
     )
     return sweep, split, model.name
 

@@ -15,6 +15,16 @@ draws by a Gaussian kernel density estimate reflected at the box faces (Silverma
     q̂ₖ(t) = 1/(n h) Σⱼ [φ((t − θⱼ)/h) + φ((t − (2 low − θⱼ))/h) + φ((t − (2 high − θⱼ))/h)],   t ∈ [low, high],
 
 with Silverman's rule h = 0.9 · min(σ̂, IQR/1.349) · n^(−1/5) per image and parameter (floored at 1e-4 of the range).
+
+n draws cannot resolve a density below about 1/n of the prior's: a truth beyond every draw gets from the Gaussian
+kernel's tail a log-density that says more about h than about the posterior (−3 600 nats for one test image of
+cues-50000, whose precipitation draws all lie below 2 % against a truth of 10 %: that one image moved the mean over
+2 000 images by 1.8 nats). The information gain is therefore that of the defensive mixture (Hesterberg 1995)
+
+    q̃ₖ = (1 − 1/n) q̂ₖ + (1/n) pₖ,   log q̃ₖ(t) − log pₖ(t) = log((1 − 1/n) q̂ₖ(t)/pₖ(t) + 1/n)  ≥ −log n,
+
+so a truth the draws miss entirely costs log n nats (6.2 at n = 500), the most n draws can attest. Where the draws
+do resolve the truth the change is about (pₖ/q̂ₖ − 1)/n nats (q̂ₖ/pₖ ≫ 1/n); a flat marginal keeps exactly 0.
 The reflections put back the kernel mass that would leak out of the box, so a flat marginal (a parameter the image
 does not inform) is estimated without the halving at the faces a plain KDE suffers: its information gain is ≈ 0 up
 to the truth's position. For a Gaussian marginal of sd σ, the smoothing by h ≈ 0.23 σ (n = 1000) biases the
@@ -81,7 +91,8 @@ class MarginalScores:
         width: ``(M, N, d)`` the intervals' widths as shares of the prior ranges.
         covered: ``(M, N, d)`` bool, the interval holds the truth.
         abs_error: ``(N, d)`` |median − truth| in physical units.
-        log_ratio: ``(N, d)`` log q̂ₖ(θₖ* | x) − log pₖ(θₖ*) in nats.
+        log_ratio: ``(N, d)`` log q̃ₖ(θₖ* | x) − log pₖ(θₖ*) in nats, q̃ₖ the KDE mixed with the prior at weight 1/n
+            (at least −log n; module docstring).
     """
 
     masses: tuple[float, ...]
@@ -204,6 +215,9 @@ def marginal_scores(samples: object, truth: object, box: Box, masses: tuple[floa
             covered[i, rows] = (low <= tb) & (tb <= high)
         abs_error[rows] = np.abs(_quantile(draws, 0.5) - tb)
         log_ratio[rows] = _kde_log_density(draws, tb, _bandwidth(draws, box.width), box) - log_prior
+    # the defensive mixture with the prior (module docstring): log((1 − 1/n) q̂/p + 1/n), at least −log n
+    n = s.shape[1]
+    log_ratio = np.logaddexp(np.log1p(-1.0 / n) + log_ratio, -np.log(n))
     return MarginalScores(m, width, covered, abs_error, log_ratio)
 
 

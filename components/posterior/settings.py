@@ -19,7 +19,15 @@ from components.posterior.train import TrainingConfig
 if TYPE_CHECKING:
     from components.core.config import TrainConfig
 
-__all__ = ["flow_config", "training_config", "epochs_for", "patience_for", "hidden_for", "small_data_scale"]
+__all__ = [
+    "flow_config",
+    "training_config",
+    "epochs_for",
+    "patience_for",
+    "hidden_for",
+    "input_noise_for",
+    "small_data_scale",
+]
 
 
 def _every_field(cls: type, settings: dict[str, Any]) -> dict[str, Any]:
@@ -88,11 +96,25 @@ def patience_for(train_section: TrainConfig, size: int) -> int:
     return math.ceil(train_section.patience * small_data_scale(train_section, size))
 
 
+def input_noise_for(train_section: TrainConfig, size: int, *, trainable: bool) -> float:
+    """σ of the training-input noise for ``size`` frozen-feature training images: ``train.input_noise`` ×
+    √(``scale_to`` / size) up to ``train.input_noise_max_size`` images, 0 above and for a trainable backbone (it sees
+    images, not features). The noise a flow needs falls as 1/√n with its data: measured on the cues, σ = 0.3 at 5k and
+    0.15 at 20k bring the tempered flows from 0.104 and 0.091 to 0.065 and 0.020 at no loss of information, while at
+    50k, where the sample budget already stops training at 20 epochs, 0.095 costs 0.1 nats and overshoots into
+    underconfidence (BENCHMARKS.md, "Cues version 3 and input noise")."""
+    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+        raise ValueError(f"size must be a positive integer, got {size!r}")
+    if trainable or size > train_section.input_noise_max_size:
+        return 0.0
+    return float(train_section.input_noise) * math.sqrt(train_section.scale_to / size)
+
+
 def training_config(
     train_section: TrainConfig, *, size: int, trainable: bool, seed: int, balance: float | None = None
 ) -> TrainingConfig:
-    """The training settings of ``train`` for a model of ``size`` training images: :func:`epochs_for` epochs;
-    ``seed`` is the caller's; ``balance`` (a variant's) replaces ``train.balance``."""
+    """The training settings of ``train`` for a model of ``size`` training images: :func:`epochs_for` epochs,
+    :func:`input_noise_for` noise; ``seed`` is the caller's; ``balance`` (a variant's) replaces ``train.balance``."""
     t = train_section
     return TrainingConfig(
         **_every_field(
@@ -111,6 +133,7 @@ def training_config(
                 clip_norm=t.clip_norm,
                 seed=seed,
                 balance=t.balance if balance is None else balance,
+                input_noise=input_noise_for(t, size, trainable=trainable),
             ),
         )
     )

@@ -46,10 +46,24 @@ Version 2 adds regional photometry (161), computed in linear radiance ``Y`` (lum
 - ``sky_distribution`` (10): quantiles of the sky's saturation and blue chromaticity and the share of saturated
   (clear blue) sky pixels — cloud cover.
 
-Measured (BENCHMARKS.md, "Models that read the images"): on 50 000 training images the flow on the 241 cues gains
-6.2 nats where the 80 version-1 cues gain 4.9.
+Version 3 adds rain, shadow and puddle detectors (32), at full resolution:
 
-Why. It is the interpretable end of the backbone comparison: a flow on these 241 numbers can only use
+- ``ridge`` (18): thin bright lines — a pixel's sRGB luma minus the mean of its two neighbours across the line, for
+  vertical lines and the two diagonals (``slash`` ╱ and ``backslash`` ╲), averaged over 5 pixels along the line (a
+  streak's length): the share of pixels above 0.005, 0.01, 0.02 and 0.04 and the log mean positive response over the
+  image and over its upper half — rain streaks (count ∝ precipitation, slant from the wind) against the sky.
+- ``ground`` (5): the lower 40 % of rows split into lit and shadowed pixels by Otsu's threshold on log ``Y``: the lit
+  share, the lit-minus-shadowed contrast of log ``Y`` and of log(R/B), and log(R/B) of each class — the shadowed
+  ground sees only sky light, the lit ground the sun too, whose colour reddens with the air mass (low sun).
+- ``puddle`` (9): in three road bands (rows 55–70, 70–85, 85–100 %, central 60 % of columns), the share of pixels
+  bluer than the sky's mean blue chromaticity − 0.02, brighter than 1.5 × the band's median and brighter than
+  0.6 × the sky's mean luma — puddles mirror the sky and lights and darken the road under them.
+
+Measured (BENCHMARKS.md, "Models that read the images"): on 50 000 training images the flow on the 241 version-2
+cues gains 6.2 nats where the 80 version-1 cues gain 4.9; the 32 version-3 cues add 0.2 nats (rain's daytime
+error 5.3 → 4.8).
+
+Why. It is the interpretable end of the backbone comparison: a flow on these 273 numbers can only use
 what physics says is visible, so comparing it with the learned ``cnn`` and the raw ``tiny`` thumbnail
 shows how much a learned representation adds. The region split assumes a forward-looking camera with
 the horizon near mid-image (true for the simulators' pitch of ±2°).
@@ -83,6 +97,11 @@ _SKY_B_Q = (10, 50, 90)
 _ROWS = 16
 _ROW_PROFILES = ("log_y", "bchroma", "dark", "log_fine_energy", "log_streak_ratio")
 _LOG_Y_RANGE = (math.log(1e-3), 0.0)  # log of linear luminance + 1e-3, for 0–1 input
+_RIDGE_T = ("0.005", "0.01", "0.02", "0.04")  # thresholds of the line response (sRGB luma)
+#: line directions (row step, column step): vertical, ╱ and ╲
+_RIDGE_DIRECTIONS = {"vertical": (1, 0), "slash": (1, -1), "backslash": (1, 1)}
+_RIDGE_LENGTH = 5  # pixels averaged along a line
+_PUDDLE_BANDS = ((0.55, 0.70), (0.70, 0.85), (0.85, 1.0))  # road rows (shares of the height): far, mid, near
 
 
 def _names() -> tuple[str, ...]:
@@ -109,6 +128,14 @@ def _names() -> tuple[str, ...]:
     names += [f"row{i:02d}_{what}" for what in _ROW_PROFILES for i in range(_ROWS)]
     names += [f"sky_sat_q{q:02d}" for q in _SKY_SAT_Q] + [f"sky_bchroma_q{q:02d}" for q in _SKY_B_Q]
     names += ["sky_blue_frac", "sky_deep_blue_frac"]
+    # version 3: rain streaks, lit and shadowed ground, puddles
+    ridge = (*(f"frac{t}" for t in _RIDGE_T), "log_mean", "log_mean_upper")
+    names += [f"ridge_{d}_{r}" for d in _RIDGE_DIRECTIONS for r in ridge]
+    names += ["ground_lit_frac", "ground_lit_over_shadow", "ground_lit_minus_shadow_log_r_over_b"]
+    names += ["ground_lit_log_r_over_b", "ground_shadow_log_r_over_b"]
+    names += [
+        f"puddle_{b}_{k}" for b in ("far", "mid", "near") for k in ("sky_blue_frac", "bright_frac", "sky_bright_frac")
+    ]
     return tuple(names)
 
 
@@ -169,9 +196,9 @@ def _range_quantiles(v: torch.Tensor, percents: tuple[int, ...], lo: float, hi: 
     return lo + q * (hi - lo)
 
 
-def _regional(x: torch.Tensor) -> torch.Tensor:
-    """Version-2 cues of sRGB images ``(n, 3, H, W)`` in [0, 1] → ``(n, 161)`` (see the module docstring)."""
-    lin = _srgb_to_linear(x)
+def _regional(x: torch.Tensor, lin: torch.Tensor) -> torch.Tensor:
+    """Version-2 cues of sRGB images ``x (n, 3, H, W)`` in [0, 1], ``lin`` their linear RGB → ``(n, 161)`` (see the
+    module docstring)."""
     n, _, h, w = x.shape
     y = 0.2126 * lin[:, 0] + 0.7152 * lin[:, 1] + 0.0722 * lin[:, 2]  # (n, H, W) linear luminance
     log_y = torch.log(y + 1e-3)
@@ -217,6 +244,80 @@ def _regional(x: torch.Tensor) -> torch.Tensor:
     return torch.cat(out, dim=1)
 
 
+def _shift(x: torch.Tensor, dy: int, dx: int) -> torch.Tensor:
+    """``x (n, H, W)`` read at (row + dy, column + dx), borders replicated (|dy|, |dx| ≤ 2)."""
+    h, w = x.shape[-2:]
+    p = F.pad(x[:, None], (2, 2, 2, 2), mode="replicate")[:, 0]
+    return p[:, 2 + dy : 2 + dy + h, 2 + dx : 2 + dx + w]
+
+
+def _ridges(v: torch.Tensor) -> torch.Tensor:
+    """Thin bright lines of sRGB luma ``v (n, H, W)`` → ``(n, 18)``: per direction of :data:`_RIDGE_DIRECTIONS`, the
+    response ``v − (v₋ + v₊)/2`` across the line averaged over :data:`_RIDGE_LENGTH` pixels along it; the shares of
+    pixels above each threshold of :data:`_RIDGE_T`, log(mean positive response + 1e-5) over the image and its upper
+    half."""
+    out: list[torch.Tensor] = []
+    thresholds = [float(t) for t in _RIDGE_T]
+    half = v.shape[1] // 2
+    for dy, dx in _RIDGE_DIRECTIONS.values():
+        ay, ax = dx, -dy  # across the line: perpendicular to (dy, dx)
+        r = v - 0.5 * (_shift(v, -ay, -ax) + _shift(v, ay, ax))
+        k = _RIDGE_LENGTH // 2
+        line = sum(_shift(r, i * dy, i * dx) for i in range(-k, k + 1)) / _RIDGE_LENGTH
+        out += [(line > t).to(v.dtype).mean((1, 2))[:, None] for t in thresholds]
+        pos = line.clamp_min(0.0)
+        out += [torch.log(pos.mean((1, 2)) + 1e-5)[:, None], torch.log(pos[:, :half].mean((1, 2)) + 1e-5)[:, None]]
+    return torch.cat(out, dim=1)
+
+
+def _otsu(u: torch.Tensor, bins: int = 64) -> torch.Tensor:
+    """Otsu's threshold of each row of ``u (n, m)`` (values in [0, 1]) from a ``bins``-bin histogram → ``(n, 1)``."""
+    p = _histogram(u, bins)
+    p = p / p.sum(1, keepdim=True)
+    centre = (torch.arange(bins, dtype=u.dtype, device=u.device) + 0.5) / bins
+    w0, mu = p.cumsum(1), (p * centre).cumsum(1)
+    between = (mu[:, -1:] * w0 - mu) ** 2 / (w0 * (1.0 - w0) + 1e-9)  # between-class variance per split
+    return (between.argmax(1, keepdim=True).to(u.dtype) + 1.0) / bins
+
+
+def _ground(lin: torch.Tensor) -> torch.Tensor:
+    """Lit and shadowed ground of linear RGB ``lin (n, 3, H, W)`` (lower 40 % of rows) → ``(n, 5)``: the lit share, the
+    lit-minus-shadowed log ``Y`` and log(R/B), log(R/B) of the lit and of the shadowed pixels."""
+    h = lin.shape[2]
+    g = lin[:, :, int(0.6 * h) :].flatten(2)
+    log_y = torch.log(0.2126 * g[:, 0] + 0.7152 * g[:, 1] + 0.0722 * g[:, 2] + 1e-3)
+    log_rb = torch.log((g[:, 0] + 1e-3) / (g[:, 2] + 1e-3))
+    lo, hi = log_y.amin(1, keepdim=True), log_y.amax(1, keepdim=True)
+    lit = (log_y >= lo + _otsu((log_y - lo) / (hi - lo + 1e-6)) * (hi - lo)).to(lin.dtype)
+
+    def mean(v: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        return (v * w).sum(1, keepdim=True) / w.sum(1, keepdim=True).clamp_min(1.0)
+
+    y_lit, y_shadow = mean(log_y, lit), mean(log_y, 1.0 - lit)
+    rb_lit, rb_shadow = mean(log_rb, lit), mean(log_rb, 1.0 - lit)
+    return torch.cat([lit.mean(1, keepdim=True), y_lit - y_shadow, rb_lit - rb_shadow, rb_lit, rb_shadow], dim=1)
+
+
+def _puddles(x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Puddles in three road bands of sRGB ``x (n, 3, H, W)`` with luma ``v (n, H, W)`` → ``(n, 9)``: per band of
+    :data:`_PUDDLE_BANDS`, the shares of pixels bluer than the sky (top 30 %) less 0.02, brighter than 1.5 × the band's
+    median and brighter than 0.6 × the sky's mean luma."""
+    n, _, h, w = x.shape
+    bchroma = x[:, 2] / (x.sum(1) + _EPS)
+    s = int(0.3 * h)
+    sky_b, sky_v = bchroma[:, :s].mean((1, 2))[:, None], v[:, :s].mean((1, 2))[:, None]
+    c0, c1 = round(0.2 * w), w - round(0.2 * w)
+    out: list[torch.Tensor] = []
+    for a, b in _PUDDLE_BANDS:
+        rows = slice(int(a * h), int(b * h))
+        band_v, band_b = v[:, rows, c0:c1].flatten(1), bchroma[:, rows, c0:c1].flatten(1)
+        median = _quantiles(_histogram(band_v, 256), (0.5,))
+        out.append((band_b > sky_b - 0.02).to(x.dtype).mean(1, keepdim=True))
+        out.append((band_v > 1.5 * median).to(x.dtype).mean(1, keepdim=True))
+        out.append((band_v > 0.6 * sky_v).to(x.dtype).mean(1, keepdim=True))
+    return torch.cat(out, dim=1)
+
+
 def _orientation_histogram(v: torch.Tensor, bins: int = 8) -> torch.Tensor:
     """Energy-weighted histogram of edge orientation of (n, 1, H, W) → (n, bins + 1).
 
@@ -242,10 +343,10 @@ def _orientation_histogram(v: torch.Tensor, bins: int = 8) -> torch.Tensor:
 
 
 class CuesBackbone(Backbone):
-    """Physical weather cues (241 features); frozen, no weights. See the module docstring."""
+    """Physical weather cues (273 features); frozen, no weights. See the module docstring."""
 
     name: ClassVar[str] = "cues"
-    version: ClassVar[str] = "2"
+    version: ClassVar[str] = "3"
     dim: int = len(FEATURE_NAMES)
     trainable: bool = False
     input_size: tuple[int, int] = (128, 128)
@@ -255,7 +356,7 @@ class CuesBackbone(Backbone):
         return {"input_size": list(self.input_size)}
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → cues ``(n, 241)`` float32 (:data:`FEATURE_NAMES`).
+        """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → cues ``(n, 273)`` float32 (:data:`FEATURE_NAMES`).
 
         Region and colour statistics use the 2×2 area-averaged 64×64 image (4× cheaper, same means);
         contrast, edges and the clipped/dark fractions use full resolution (thin streaks, lamps).
@@ -349,7 +450,9 @@ class CuesBackbone(Backbone):
         vff = v_full.flatten(1)
         feats += [(vff < 0.05).float().mean(1, keepdim=True), (vff > 0.95).float().mean(1, keepdim=True)]
 
-        feats.append(_regional(x))
+        lin_full = _srgb_to_linear(x)
+        feats.append(_regional(x, lin_full))
+        feats += [_ridges(v_full[:, 0]), _ground(lin_full), _puddles(x, v_full[:, 0])]
         out = torch.cat(feats, dim=1)
         if out.shape[1] != self.dim:  # internal consistency of FEATURE_NAMES and the code above
             raise RuntimeError(f"cues: computed {out.shape[1]} features, FEATURE_NAMES has {self.dim}")

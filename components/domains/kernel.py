@@ -35,7 +35,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from components.core.seeding import rng
-from components.domains.absolute import normalized_weights
+from components.domains.absolute import _as_theta, normalized_weights
 
 __all__ = ["KernelDomain", "scott_bandwidth", "sources_bandwidth"]
 
@@ -94,6 +94,7 @@ class KernelDomain:
         active = np.flatnonzero(w > 0)
         self._centres = d[active].reshape(-1, dim) / h  # standardized: the kernel is 𝒩(0, I) there
         self._log_w = np.repeat(np.log(w[active]) - math.log(m), m)
+        self._sq_centres = np.einsum("cd,cd->c", self._centres, self._centres)  # ‖c‖², reused by every log_prob
         self._bandwidth = h
         self._log_norm = -0.5 * dim * math.log(2 * math.pi) - float(np.log(h).sum())
 
@@ -107,16 +108,15 @@ class KernelDomain:
 
     def log_prob(self, theta: object) -> np.ndarray:
         """log p̃(θ) for ``theta (k, d)`` → ``(k,)`` (physical units; log-sum-exp over the centres)."""
-        t = np.asarray(theta, dtype=np.float64)
-        if t.ndim != 2 or t.shape[1] != len(self._bandwidth) or t.shape[0] == 0 or not np.all(np.isfinite(t)):
+        t = _as_theta(theta)
+        if t.shape[1] != len(self._bandwidth):
             raise ValueError(f"theta must be finite of shape (k, {len(self._bandwidth)}), got shape {t.shape}")
         u = t / self._bandwidth
         per_block = max(1, _CENTRES_PER_CALL // len(self._log_w))
         out = np.empty(len(u))
-        sq_c = np.einsum("cd,cd->c", self._centres, self._centres)
         for a in range(0, len(u), per_block):
             ub = u[a : a + per_block]
-            sq = np.einsum("kd,kd->k", ub, ub)[:, None] - 2.0 * ub @ self._centres.T + sq_c[None, :]
+            sq = np.einsum("kd,kd->k", ub, ub)[:, None] - 2.0 * ub @ self._centres.T + self._sq_centres[None, :]
             out[a : a + per_block] = logsumexp(self._log_w[None, :] - 0.5 * np.maximum(sq, 0.0), axis=1)
         return out + self._log_norm
 

@@ -186,12 +186,12 @@ class NoiseSweep:
             or draws_per_image < 2
         ):
             raise ValueError(f"draws_per_image must be an integer ≥ 2, got {draws_per_image!r}")
+        if not (isinstance(bandwidth_scale, (int, float)) and 0 < bandwidth_scale < float("inf")):
+            raise ValueError(f"bandwidth_scale must be a positive number, got {bandwidth_scale!r}")
         self._draws = np.asarray(
             posterior.sample(self._union, int(draws_per_image), derive_seed(seed, "sweep", "kernel"))
         )
         per_bag = [self._draws[self._offsets[k] : self._offsets[k + 1]] for k in range(1, len(bags))]
-        if not (isinstance(bandwidth_scale, (int, float)) and 0 < bandwidth_scale < float("inf")):
-            raise ValueError(f"bandwidth_scale must be a positive number, got {bandwidth_scale!r}")
         self.bandwidth = float(bandwidth_scale) * sources_bandwidth(per_bag)
         self.sources = [KernelDomain(d, None, self.bandwidth) for d in per_bag]
 

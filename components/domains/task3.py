@@ -1,12 +1,13 @@
 """Task III (paper): the source and out-of-ODD bags of the test split, the sweep over η, and its metrics.
 
 Used by the ``task3`` stage, its benchmark and the scheduled monitoring (``flows/monitor.py``). The bags are the
-test images whose weather lies in a sub-box (``task3.bags``); every image is characterized once by the registry model (its context), and the sweep
-(:class:`~components.domains.sweep.NoiseSweep`) mixes them into targets at each noise level η.
+test images whose weather lies in a sub-box (``task3.bags``); every image is characterized once by the registry
+model (its context), and the sweep (:class:`~components.domains.sweep.NoiseSweep`) mixes them into targets at each
+noise level η.
 
 Each bag's weather is characterized as ``task3.smoothing`` says: the kernel density of ``task3.draws_per_image``
-posterior draws per image with one Scott bandwidth (:mod:`components.domains.kernel`, the default), or the paper's
-exact mixture of posteriors.
+posterior draws per image with one bandwidth, ``task3.bandwidth_scale`` × Scott's rule
+(:mod:`components.domains.kernel`, the default), or the paper's exact mixture of posteriors.
 
 Bags share no image, by construction (:func:`split_bags`): every test image belongs to at most one bag — the first,
 in the order b0, b1, b2, …, whose sub-box holds it (b0's box is disjoint from the sources' by the config) — so an

@@ -2,10 +2,12 @@
 
 ``python -m flows.task2 [--params params.yaml]``. Renders the bag (:func:`components.domains.task2.render_bag`: every
 parameter fixed but fog density and precipitation, the sun azimuth included), characterizes it with the registry
-model ``task2.model`` on onnxruntime (p̂_𝒟(θ) = Σᵢ wᵢ q(θ | xᵢ)), scores it against the true distribution and the
-prior (:func:`components.domains.task2.task2_metrics`) and writes ``reports/task2/metrics.json`` and plots (the true
-distribution and the estimate side by side and overlaid, the 1-D marginals of truth, estimate and prior overlaid,
-the bag); logs the metrics and plots to MLflow.
+model ``task2.model`` on onnxruntime (the estimate ``task2.estimate``: the mixture p̂_𝒟(θ) = Σᵢ wᵢ q(θ | xᵢ) or its
+deconvolution, :func:`components.domains.task2.characterize`), scores it against the true distribution and the prior
+(:func:`components.domains.task2.task2_metrics`; a deconvolved estimate is reported with the mixture's figures beside
+it, under ``mixture``) and writes ``reports/task2/metrics.json`` and plots (the true distribution and the estimate
+side by side and overlaid, the 1-D marginals of truth, estimate, mixture and prior overlaid, the held-out likelihood
+per EM step, the bag); logs the metrics and plots to MLflow.
 """
 
 from __future__ import annotations
@@ -45,7 +47,8 @@ def _description(metrics: dict, model: str) -> str:
     """The Task II run's description: its headline figures."""
     energy = metrics["energy_distance_sq"]["all"]
     return (
-        f"Task II with {model}: energy distance² estimate→truth {energy['estimate_to_truth']:.4f} vs prior→truth "
+        f"Task II with {model}, {metrics['estimate']} estimate: energy distance² estimate→truth "
+        f"{energy['estimate_to_truth']:.4f} vs prior→truth "
         f"{energy['prior_to_truth']:.4f} (ratio {energy['ratio']:.3f}); {100 * metrics['true_mass_in_hdr']:.1f} % of "
         "the true mass inside the estimate's HDR. Per parameter: metrics `task2.parameters.<parameter>.*`."
     )
@@ -64,9 +67,16 @@ def task2(params_path: str = "params.yaml") -> dict:
     _, images = render_bag(str(stage.params_file))
     contexts = model.posterior.context(model.inputs(images))  # the embedding runs once per image
     domain = Domain(model.posterior.on_context(), contexts)  # equally weighted bag
-    metrics, estimate, truth, prior = task2_.task2_metrics(domain, params, model.name)
+    characterization, how = task2_.characterize(domain, params)
+    metrics, estimate, truth, prior = task2_.task2_metrics(characterization, params, model.name)
+    metrics = {"estimate": t.estimate, **metrics}
+    mixture = None
+    if t.estimate != "mixture":
+        metrics["deconvolution"] = how
+        metrics["mixture"], mixture, _, _ = task2_.task2_metrics(domain, params, model.name)
+        del metrics["mixture"]["model"]
 
-    labels = ("ground truth P_D(W)", "estimate P̂_D(W)")
+    labels = ("ground truth P_D(W)", f"estimate P̂_D(W), {t.estimate}")
     figures = [
         plots.save_figure(
             plots.corner_compare(truth, estimate, labels=labels, box=params.box),
@@ -83,12 +93,24 @@ def task2(params_path: str = "params.yaml") -> dict:
                 prior,
                 box=params.box,
                 notes=[_note(r) for r in metrics["parameters"].values()],
-                title=f"Task II ({model.name}): marginals of the truth, the estimate and the prior "
+                title=f"Task II ({model.name}): marginals of the truth, the {t.estimate} estimate and the prior "
                 f"({100 * t.hdr_level:.0f} % HDR)",
+                reference=mixture,
             ),
             out / "plots" / "marginals.png",
         ),
     ]
+    if t.estimate != "mixture":
+        figures.append(
+            plots.save_figure(
+                plots.held_out_curve(
+                    np.asarray(how["held_out_log_likelihood"]),
+                    how["steps"],
+                    title=f"Task II ({model.name}): how far to deconvolve ({t.deconvolution.folds}-fold cross-validation)",
+                ),
+                out / "plots" / "deconvolution.png",
+            )
+        )
     shown = min(48, t.images)
     figures.append(
         plots.save_figure(
@@ -110,9 +132,10 @@ def task2(params_path: str = "params.yaml") -> dict:
     )
     energy = metrics["energy_distance_sq"]["all"]
     stage.logger.info(
-        "task2 (%s): %.1f %% of the true mass inside the estimate's %.0f %% HDR; energy distance² (U) %.4f, prior "
-        "%.4f, ratio %.3f (truth vs truth %.4f)",
+        "task2 (%s, %s estimate): %.1f %% of the true mass inside the estimate's %.0f %% HDR; energy distance² (U) "
+        "%.4f, prior %.4f, ratio %.3f (truth vs truth %.4f)",
         model.name,
+        t.estimate,
         100 * metrics["true_mass_in_hdr"],
         100 * t.hdr_level,
         energy["estimate_to_truth"],

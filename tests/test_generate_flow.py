@@ -103,7 +103,11 @@ def test_dvc_repro_pipeline_in_a_temp_git_repo(micro_project, tmp_path, prefect_
     assert task2["model"] == champion["model"] and 0 <= task2["true_mass_in_hdr"] <= 1
     assert len(task2["log_density_at_modes"]) == 3 and task2["energy_distance_sq"]["all"]["prior_to_truth"] > 0
     assert set(task2["parameters"]["fog_density"]) >= {"wasserstein_estimate", "wasserstein_prior", "true_mass_in_hdr"}
-    for name in ("corner-truth-vs-estimate.png", "corner-overlay.png", "marginals.png", "bag.png"):
+    # the micro profile scores the deconvolved estimate: the mixture's figures beside it, the EM steps chosen
+    assert task2["estimate"] == "deconvolved" and 0 <= task2["deconvolution"]["steps"] <= 20
+    assert len(task2["deconvolution"]["held_out_log_likelihood"]) == 21 and task2["deconvolution"]["support"] == 64
+    assert task2["mixture"]["energy_distance_sq"]["all"]["prior_to_truth"] > 0 and "model" not in task2["mixture"]
+    for name in ("corner-truth-vs-estimate.png", "corner-overlay.png", "marginals.png", "bag.png", "deconvolution.png"):
         assert (repo / "reports/task2/plots" / name).stat().st_size > 5000, name
     # Task III: per η the paper's statistics; AUC for η > 0; the ODD threshold with its false-alarm rate
     task3 = json.loads((repo / "reports/task3/metrics.json").read_text())

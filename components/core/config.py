@@ -253,6 +253,17 @@ class GaussianMode(_Section):
     std: tuple[Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]]
 
 
+class DeconvolutionConfig(_Section):
+    """Task II's deconvolved estimate (:mod:`components.domains.deconvolution`)."""
+
+    #: posterior draws per bag image forming the support of the estimate (support size = images × draws)
+    draws_per_image: PositiveInt
+    #: EM steps tried (1 = the mixture of posteriors); the number used is chosen by held-out likelihood
+    max_steps: PositiveInt
+    #: folds of the cross-validation over the bag's images
+    folds: Annotated[int, Field(ge=2)]
+
+
 class Task2Config(_Section):
     """Task II: a bag of rendered images whose weather follows a known distribution → its characterization."""
 
@@ -272,6 +283,10 @@ class Task2Config(_Section):
     samples: Annotated[int, Field(ge=100)]
     #: the estimate's highest-density region whose share of the true mass is reported
     hdr_level: Annotated[float, Field(gt=0, lt=1)]
+    #: the estimate scored: ``mixture`` = Σᵢ wᵢ q(θ | xᵢ) (the paper's), ``deconvolved`` = the maximum-likelihood
+    #: weather distribution of the bag (the mixture's figures are then reported beside it)
+    estimate: Literal["mixture", "deconvolved"]
+    deconvolution: DeconvolutionConfig
 
     @field_validator("fixed")
     @classmethod

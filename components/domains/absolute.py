@@ -19,7 +19,7 @@ Used by the ``task2`` and ``task3`` stages and the ``pidc`` CLI (``domain``, ``r
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -138,20 +138,15 @@ class Domain:
         item = max(1, int(self._bag[0].nbytes))
         return max(1, min(_PAIRS_PER_CALL, _BYTES_PER_CALL // item))
 
-    def log_prob(self, theta: np.ndarray) -> np.ndarray:
-        """log p̂_𝒟(θⱼ) = logsumexpᵢ [log wᵢ + log q(θⱼ | xᵢ)] for ``theta (m, d)`` → ``(m,)`` (physical units).
-
-        All (θⱼ, xᵢ) pairs are evaluated, in calls of a bounded number of pairs and bytes.
-        """
+    def _member_blocks(self, theta: np.ndarray) -> Iterator[tuple[int, int, np.ndarray]]:
+        """Yield ``(t0, i0, lq)``: log q(θⱼ | xᵢ) for θ rows t0… and active members i0…, ``lq (members, rows)``; every
+        (θⱼ, xᵢ) pair once, in calls of a bounded number of pairs and bytes."""
         t = _as_theta(theta)
-        m = t.shape[0]
         pairs = self._members_per_call()
-        out = np.empty(m)
-        for t0 in range(0, m, pairs):
+        for t0 in range(0, t.shape[0], pairs):
             tb = t[t0 : t0 + pairs]
             mb = tb.shape[0]
             per_call = max(1, pairs // mb)
-            acc = np.full(mb, -np.inf)
             for i0 in range(0, self._active.size, per_call):
                 idx = self._active[i0 : i0 + per_call]
                 x_rep = np.repeat(self._bag[idx], mb, axis=0)  # member-major: row i*mb + j is (θⱼ, x_idx[i])
@@ -163,9 +158,26 @@ class Domain:
                     )
                 if np.any(np.isnan(lq)) or np.any(lq == np.inf):
                     raise ValueError("posterior.log_prob returned NaN or +inf: the estimator is not a proper density")
-                part = lq.reshape(idx.size, mb) + self._log_w[i0 : i0 + per_call, None]
-                acc = np.logaddexp(acc, logsumexp(part, axis=0))  # −inf where a column is all −inf
-            out[t0 : t0 + mb] = acc
+                yield t0, i0, lq.reshape(idx.size, mb)
+
+    def log_prob(self, theta: np.ndarray) -> np.ndarray:
+        """log p̂_𝒟(θⱼ) = logsumexpᵢ [log wᵢ + log q(θⱼ | xᵢ)] for ``theta (m, d)`` → ``(m,)`` (physical units).
+
+        All (θⱼ, xᵢ) pairs are evaluated, in calls of a bounded number of pairs and bytes.
+        """
+        out = np.full(_as_theta(theta).shape[0], -np.inf)
+        for t0, i0, lq in self._member_blocks(theta):
+            part = lq + self._log_w[i0 : i0 + lq.shape[0], None]
+            sl = slice(t0, t0 + lq.shape[1])
+            out[sl] = np.logaddexp(out[sl], logsumexp(part, axis=0))  # −inf where a column is all −inf
+        return out
+
+    def member_log_prob(self, theta: np.ndarray) -> np.ndarray:
+        """log q(θⱼ | xᵢ) for every member with positive weight (bag order) and every row of ``theta (m, d)`` →
+        ``(members, m)``, physical units."""
+        out = np.empty((self._active.size, _as_theta(theta).shape[0]))
+        for t0, i0, lq in self._member_blocks(theta):
+            out[i0 : i0 + lq.shape[0], t0 : t0 + lq.shape[1]] = lq
         return out
 
     def sample(self, n: int, seed: int) -> np.ndarray:

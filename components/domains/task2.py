@@ -13,6 +13,10 @@ Domain`) is compared with the true distribution P_𝒟(θ), and with the uniform
   scores near the prior), the width of the estimate's marginal ``hdr_level`` HDR and the share of the true mass in it;
 * the share of the true mass inside the estimate's joint ``hdr_level`` HDR, and the estimate's density at the true
   modes.
+
+The estimate is ``task2.estimate``: the mixture itself, or its deconvolution (:func:`characterize`,
+:mod:`components.domains.deconvolution`: the bag's maximum-likelihood weather distribution, of which the mixture is the
+first EM step), scored the same way.
 """
 
 from __future__ import annotations
@@ -23,11 +27,20 @@ from tqdm.auto import tqdm
 from components.core import seeding, weather
 from components.core.config import Params
 from components.domains.absolute import Domain
+from components.domains.deconvolution import deconvolve
 from components.domains.distances import energy_distance_sq, marginal_hdr, wasserstein_1d
 from components.domains.scenarios import GaussianMixtureWeather
 from components.evaluate import diagnostics
 
-__all__ = ["DISTANCE_DRAWS", "DENSITY_DRAWS", "HDR_BINS", "true_distribution", "render_bag", "task2_metrics"]
+__all__ = [
+    "DISTANCE_DRAWS",
+    "DENSITY_DRAWS",
+    "HDR_BINS",
+    "true_distribution",
+    "render_bag",
+    "characterize",
+    "task2_metrics",
+]
 
 #: draws per distribution entering the energy distances (O(n²) pairs)
 DISTANCE_DRAWS = 2000
@@ -62,6 +75,30 @@ def render_bag(params: Params, simulator) -> tuple[np.ndarray, np.ndarray]:
     return theta, images
 
 
+def characterize(domain: Domain, params: Params) -> tuple[object, dict]:
+    """The estimate ``task2.estimate`` of the bag's weather distribution (a :class:`Domain` or the deconvolution's
+    kernel density, both with ``sample(n, seed)`` and ``log_prob(θ)``) and what it took: for ``deconvolved`` the EM
+    steps chosen (1 = the mixture), the held-out log likelihood per image gained over the mixture (nats), the kernel
+    bandwidth (physical units) and the support's effective size."""
+    t = params.task2
+    if t.estimate == "mixture":
+        return domain, {}
+    c = t.deconvolution
+    dec = deconvolve(domain, c.draws_per_image, c.max_steps, c.folds, seeding.derive_seed(params.seed, "task2"))
+    return dec.density, {
+        "draws_per_image": c.draws_per_image,
+        "max_steps": c.max_steps,
+        "folds": c.folds,
+        "steps": dec.steps,
+        "held_out_gain_per_image": float(dec.held_out[dec.steps] - dec.held_out[1]),
+        "held_out_log_likelihood": [float(v) for v in dec.held_out],
+        "kernel_scale": dec.kernel_scale,
+        "bandwidth": dict(zip(params.box.names, (dec.scott * dec.kernel_scale).tolist(), strict=True)),
+        "effective_support": float(1.0 / np.sum(dec.weights**2)),
+        "support": int(len(dec.weights)),
+    }
+
+
 def _energy(estimate: np.ndarray, truth: np.ndarray, truth2: np.ndarray, prior: np.ndarray, width: np.ndarray) -> dict:
     est, pri = energy_distance_sq(estimate, truth, width), energy_distance_sq(prior, truth, width)
     return {
@@ -72,8 +109,9 @@ def _energy(estimate: np.ndarray, truth: np.ndarray, truth2: np.ndarray, prior: 
     }
 
 
-def task2_metrics(domain: Domain, params: Params, model_name: str) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
-    """Score the characterization ``domain`` of the bag against the true distribution.
+def task2_metrics(domain, params: Params, model_name: str) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
+    """Score the characterization ``domain`` of the bag (anything with ``sample(n, seed)`` and ``log_prob(θ)`` in
+    physical units) against the true distribution.
 
     Returns ``(metrics, estimate, truth, prior)``: ``task2.samples`` draws of each (physical units, ``(S, 6)``) and
     the metrics (see the module docstring; README, Task II, for the layout of ``reports/task2/metrics.json``).

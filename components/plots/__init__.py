@@ -5,7 +5,7 @@ function returns a :class:`matplotlib.figure.Figure`, written with :func:`save_f
 
 * Task I: :func:`marginal_histograms` (1st analysis), :func:`corner_plot` (2nd), :func:`ppc_sheet` (3rd),
   :func:`coverage_plot` (4th), :func:`superiority_boxplot` (5th), :func:`parameter_heatmaps` (per parameter);
-* Task II: :func:`corner_compare`, :func:`marginals_overlay`, :func:`image_grid`;
+* Task II: :func:`corner_compare`, :func:`marginals_overlay`, :func:`held_out_curve`, :func:`image_grid`;
 * Task III: :func:`boxplots_by_level`, :func:`roc_curves`;
 * training: :func:`loss_curves`;
 * highest-density regions from samples: :func:`hdr_log_threshold` and its 2-D grid counterpart.
@@ -16,6 +16,7 @@ Used by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages
 from components.plots.calibration import coverage_plot, model_styles, superiority_boxplot
 from components.plots.canvas import new_figure, save_figure
 from components.plots.corner import corner_compare, corner_plot, corner_ranges
+from components.plots.deconvolution import held_out_curve
 from components.plots.hdr import grid_density, grid_hdr_thresholds, hdr_log_threshold, in_hdr
 from components.plots.images import image_grid, ppc_sheet
 from components.plots.marginals import marginal_hdr_histograms, marginal_histograms
@@ -37,6 +38,7 @@ __all__ = [
     "corner_plot",
     "corner_compare",
     "marginals_overlay",
+    "held_out_curve",
     "coverage_plot",
     "model_styles",
     "superiority_boxplot",

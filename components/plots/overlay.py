@@ -2,8 +2,9 @@
 
 Each panel shows one parameter on the prior's range: the estimate P̂_D(W) and the prior as step histograms
 (probability density per unit of the parameter), the truth P_D(W) likewise — or, for a parameter the truth holds
-fixed (a point mass: every draw equal), as a vertical line at its value. A note per panel (e.g. the Wasserstein
-distances) goes into its title.
+fixed (a point mass: every draw equal), as a vertical line at its value; optionally a reference estimate (e.g. the
+mixture of posteriors beside its deconvolution) dotted. A note per panel (e.g. the Wasserstein distances) goes into
+its title.
 
 Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
 the ``pidc`` CLI.
@@ -24,7 +25,8 @@ from components.plots.labels import parameter_label, unit_symbol
 
 __all__ = ["marginals_overlay"]
 
-_COLOURS = ("#d62728", "#1f5fa8", "#7f7f7f")  # truth, estimate, prior
+_COLOURS = ("#d62728", "#1f5fa8", "#7f7f7f", "#2ca02c")  # truth, estimate, prior, reference
+_STYLES = ("-", "-", "--", ":")
 
 
 def marginals_overlay(
@@ -36,16 +38,21 @@ def marginals_overlay(
     notes: Sequence[str] | None = None,
     title: str | None = None,
     bins: int = 50,
+    reference: object | None = None,
+    reference_label: str = "mixture of posteriors",
 ) -> Figure:
     """2×3 panels, one per parameter: the marginals of ``truth``, ``estimate`` and ``prior`` (``(n, 6)`` samples each,
-    physical units) overlaid on the box's range (default: the physical ranges). ``notes``: six strings, one per
-    parameter, appended to the panel titles."""
-    samples = [
-        as_samples(s, name) for s, name in zip((truth, estimate, prior), ("truth", "estimate", "prior"), strict=True)
-    ]
-    b = as_box(box)
+    physical units) overlaid on the box's range (default: the physical ranges), and of ``reference`` (``(n, 6)``,
+    dotted, labelled ``reference_label``) if given. ``notes``: six strings, one per parameter, appended to the panel
+    titles."""
     if len(labels) != 3:
         raise ValueError(f"labels must name truth, estimate and prior, got {labels!r}")
+    named = [(truth, "truth"), (estimate, "estimate"), (prior, "prior")]
+    if reference is not None:
+        named.append((reference, "reference"))
+        labels = (*labels, reference_label)
+    samples = [as_samples(s, name) for s, name in named]
+    b = as_box(box)
     if notes is not None and len(notes) != N_THETA:
         raise ValueError(f"notes must hold one string per parameter ({N_THETA}), got {len(notes)}")
     if not (isinstance(bins, (int, np.integer)) and bins >= 2):
@@ -54,7 +61,7 @@ def marginals_overlay(
     axes = fig.subplots(2, 3)
     for k, ax in enumerate(axes.ravel()):
         edges = np.linspace(b.low[k], b.high[k], bins + 1)
-        for s, colour, style in zip(samples, _COLOURS, ("-", "-", "--"), strict=True):
+        for s, colour, style in zip(samples, _COLOURS, _STYLES, strict=False):
             col = s[:, k]
             if s is samples[0] and np.ptp(col) == 0.0:  # the truth holds this parameter fixed: a point mass
                 ax.axvline(col[0], color=colour, linewidth=2)
@@ -70,8 +77,8 @@ def marginals_overlay(
         ax.grid(alpha=0.25)
     handles = [
         Line2D([], [], color=c, linestyle=s, linewidth=1.6, label=lab)
-        for c, s, lab in zip(_COLOURS, ("-", "-", "--"), labels, strict=True)
+        for c, s, lab in zip(_COLOURS, _STYLES, labels, strict=False)
     ]
-    fig.legend(handles=handles, loc="outside lower center", ncol=3, frameon=False)
+    fig.legend(handles=handles, loc="outside lower center", ncol=len(labels), frameon=False)
     fig.suptitle(title or "Marginals: truth (a line where it is fixed), estimate and prior")
     return fig

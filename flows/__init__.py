@@ -10,6 +10,8 @@ Imported by every stage.
 import os
 from pathlib import Path
 
+import components  # noqa: F401  (first: it pins numpy's SIMD dispatch before anything imports numpy)
+
 _ROOT = Path(__file__).resolve().parents[1]
 os.environ.setdefault("PREFECT_HOME", str(_ROOT / ".prefect"))
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")

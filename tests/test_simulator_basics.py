@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -146,3 +150,25 @@ def test_contact_sheet_layout_and_atomic_png(tmp_path) -> None:
         contact_sheet(s, [0], steps=1)
     with pytest.raises(ValueError, match="uint8"):
         save_png(path, sheet.astype(np.float32))
+
+
+def test_importing_pidc_first_pins_numpys_simd_kernels_to_the_baseline():
+    """Images must not depend on the CPU: numpy's dispatched float32 exp differs between AVX2 and the baseline, so
+    every pidc process (stages import flows → components first; the CLI components) uses the baseline kernels (the
+    x86-64 feature groups; other architectures keep numpy's choice)."""
+    probe = (
+        "import {first}, numpy as np; "
+        "info = np.lib.introspect.opt_func_info(func_name='exp', signature='float32')['exp']; "
+        "print(next(iter(info.values()))['current'])"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "NPY_DISABLE_CPU_FEATURES"}
+    for first in ("components", "flows"):
+        out = subprocess.run(
+            [sys.executable, "-c", probe.format(first=first)],
+            capture_output=True,
+            text=True,
+            env=env,
+            cwd=Path(__file__).resolve().parents[1],
+        )
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.strip().startswith("baseline"), (first, out.stdout)

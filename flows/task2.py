@@ -119,13 +119,19 @@ def task2(params_path: str = "params.yaml") -> dict:
         )
     )
     atomic_write_bytes(out / "metrics.json", json.dumps(metrics, indent=1).encode())
+    # MLflow: the held-out curve as one metric over the EM steps, not one metric per step
+    flat, series = metrics, {}
+    if t.estimate != "mixture":
+        curve = how["held_out_log_likelihood"]
+        flat = {**metrics, "deconvolution": {k: v for k, v in how.items() if k != "held_out_log_likelihood"}}
+        series = {"task2.deconvolution.held_out_log_likelihood": dict(enumerate(curve))}
     tracking.log_domain_task(
         paths.root,
         params.train.experiment,
         "task2",
         model.name,
-        tracking.flatten_numbers(metrics, "task2"),
-        {},
+        tracking.flatten_numbers(flat, "task2"),
+        series,
         [out / "metrics.json", *figures],
         {"pidc.model_source": tracking.model_source(params, t.model)},
         _description(metrics, model.name),

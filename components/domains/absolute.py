@@ -138,10 +138,9 @@ class Domain:
         item = max(1, int(self._bag[0].nbytes))
         return max(1, min(_PAIRS_PER_CALL, _BYTES_PER_CALL // item))
 
-    def _member_blocks(self, theta: np.ndarray) -> Iterator[tuple[int, int, np.ndarray]]:
-        """Yield ``(t0, i0, lq)``: log q(θⱼ | xᵢ) for θ rows t0… and active members i0…, ``lq (members, rows)``; every
-        (θⱼ, xᵢ) pair once, in calls of a bounded number of pairs and bytes."""
-        t = _as_theta(theta)
+    def _member_blocks(self, t: np.ndarray) -> Iterator[tuple[int, int, np.ndarray]]:
+        """Yield ``(t0, i0, lq)``: log q(θⱼ | xᵢ) for rows t0… of the checked ``t`` (:func:`_as_theta`) and active
+        members i0…, ``lq (members, rows)``; every (θⱼ, xᵢ) pair once, in calls of a bounded number of pairs and bytes."""
         pairs = self._members_per_call()
         for t0 in range(0, t.shape[0], pairs):
             tb = t[t0 : t0 + pairs]
@@ -165,8 +164,9 @@ class Domain:
 
         All (θⱼ, xᵢ) pairs are evaluated, in calls of a bounded number of pairs and bytes.
         """
-        out = np.full(_as_theta(theta).shape[0], -np.inf)
-        for t0, i0, lq in self._member_blocks(theta):
+        t = _as_theta(theta)
+        out = np.full(t.shape[0], -np.inf)
+        for t0, i0, lq in self._member_blocks(t):
             part = lq + self._log_w[i0 : i0 + lq.shape[0], None]
             sl = slice(t0, t0 + lq.shape[1])
             out[sl] = np.logaddexp(out[sl], logsumexp(part, axis=0))  # −inf where a column is all −inf
@@ -175,8 +175,9 @@ class Domain:
     def member_log_prob(self, theta: np.ndarray) -> np.ndarray:
         """log q(θⱼ | xᵢ) for every member with positive weight (bag order) and every row of ``theta (m, d)`` →
         ``(members, m)``, physical units."""
-        out = np.empty((self._active.size, _as_theta(theta).shape[0]))
-        for t0, i0, lq in self._member_blocks(theta):
+        t = _as_theta(theta)
+        out = np.empty((self._active.size, t.shape[0]))
+        for t0, i0, lq in self._member_blocks(t):
             out[i0 : i0 + lq.shape[0], t0 : t0 + lq.shape[1]] = lq
         return out
 

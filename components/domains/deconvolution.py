@@ -165,8 +165,8 @@ class Deconvolution:
 
     ``density`` is the kernel density of the weighted support (sample and log_prob like a domain); ``support (K, d)``
     and ``weights (K,)`` the EM solution after ``steps`` updates (0: the prior, 1: the mixture of posteriors);
-    ``held_out (max_steps + 1,)`` the cross-validated log likelihood per image and step, ``kernel_scale`` the bandwidth in units
-    of Scott's rule (``scott (d,)``, physical units)."""
+    ``held_out (max_steps + 1,)`` the cross-validated log likelihood per image and step, ``kernel_scale`` the
+    bandwidth in units of Scott's rule (``scott (d,)``, physical units)."""
 
     density: KernelDomain
     support: np.ndarray

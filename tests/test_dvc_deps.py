@@ -174,3 +174,24 @@ def test_no_import_circle():
         if f not in index:
             visit(f)
     assert not circles, f"import circles: {circles}"
+
+
+def test_training_stages_declare_every_training_setting():
+    """A model depends on every ``train`` setting but the grid's sizes (the train stages' matrix) and the variants
+    (their own stages): changing any other one in params.yaml must re-run the training stages."""
+    from dvc.dependency.param import ParamsDependency
+    from dvc.repo import Repo
+
+    from components.core.config import TrainConfig
+
+    wanted = {f"train.{k}" for k in TrainConfig.model_fields} - {"train.sizes", "train.variants"}
+    repo = Repo(str(ROOT))
+    try:
+        training = [s for s in repo.index.stages if s.addressing.startswith(("train@", "variant@"))]
+        assert training
+        for stage in training:
+            declared = {key for d in stage.deps if isinstance(d, ParamsDependency) for key in d.params}
+            missing = sorted(k for k in wanted if k not in declared and "train" not in declared)
+            assert not missing, f"dvc.yaml stage {stage.addressing!r} does not declare the params {missing}"
+    finally:
+        repo.close()

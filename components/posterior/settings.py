@@ -100,9 +100,10 @@ def input_noise_for(train_section: TrainConfig, size: int, *, trainable: bool) -
     """σ of the training-input noise for ``size`` frozen-feature training images: ``train.input_noise`` ×
     √(``scale_to`` / size) up to ``train.input_noise_max_size`` images, 0 above and for a trainable backbone (it sees
     images, not features). The noise a flow needs falls as 1/√n with its data: measured on the cues, σ = 0.3 at 5k and
-    0.15 at 20k bring the tempered flows from 0.104 and 0.091 to 0.065 and 0.020 at no loss of information, while at
-    50k, where the sample budget already stops training at 20 epochs, 0.095 costs 0.1 nats and overshoots into
-    underconfidence (BENCHMARKS.md, "Cues version 3 and input noise")."""
+    0.15 at 20k bring the tempered flows from 0.104 and 0.091 to 0.065 and 0.020 at no loss of information. At 50k the
+    noise follows the training length: after 20 epochs 0.094 costs 0.1 nats and overshoots into underconfidence, after
+    60 it keeps the calibration that longer training loses (0.080 → 0.022) for 0.05 of the 0.5 nats the 40 more
+    epochs gain (BENCHMARKS.md, "Cues version 3 and input noise", "Training the 50k models longer")."""
     if isinstance(size, bool) or not isinstance(size, int) or size < 1:
         raise ValueError(f"size must be a positive integer, got {size!r}")
     if trainable or size > train_section.input_noise_max_size:

@@ -21,8 +21,6 @@ import time
 
 import numpy as np
 from prefect import flow, task
-from prefect.futures import as_completed
-from tqdm.auto import tqdm
 
 from components import plots
 from components.core import seeding
@@ -36,27 +34,11 @@ from components.features.backbones import get_backbone
 from components.simulate import dataset
 from components.simulate.base import make_simulator
 from flows import tracking
-from flows.stage import open_stage, parse_stage_args, share_api_with_workers, task_runner
+from flows.stage import at_most, open_stage, parse_stage_args, share_api_with_workers, task_runner
 
 
 def _write_json(path, value) -> None:
     atomic_write_bytes(path, json.dumps(value, indent=1).encode())
-
-
-def _at_most(workers: int, models: list[str], submit) -> dict[str, dict]:
-    """Run ``submit(model)`` for every model, at most ``workers`` in flight (whatever the flow's task runner: a
-    deployment's default thread pool would otherwise start every model at once); results by model id."""
-    queue, pending, results = list(models), [], {}
-    with tqdm(total=len(models), desc="evaluate models", unit="model") as bar:
-        while queue or pending:
-            while queue and len(pending) < workers:
-                pending.append(submit(queue.pop(0)))
-            finished = next(as_completed(pending))
-            pending.remove(finished)
-            result = finished.result()
-            results[result["model"]] = result
-            bar.update(1)
-    return results
 
 
 @task(name="evaluate-model")
@@ -155,7 +137,7 @@ def evaluate(params_path: str) -> dict:
     stage = open_stage(params_path)
     params, paths, logger, ev = stage.params, stage.paths, stage.logger, stage.params.evaluate
     out = paths.reports("task1")
-    ids = task1.model_ids(params)
+    ids = params.model_ids()
     missing = [m for m in ids if not (paths.registry / m / "card.json").is_file()]
     if missing:
         raise FileNotFoundError(f"no exported model in registry/ for {', '.join(missing)}: run `dvc repro export`")
@@ -164,10 +146,11 @@ def evaluate(params_path: str) -> dict:
     band = task1.calibration_band(n, ev.samples, ev.band_level, ev.band_replicates, params.seed)
     cards = {m: json.loads((paths.registry / m / "card.json").read_text()) for m in ids}
     share_api_with_workers()
-    done = _at_most(
+    done = at_most(
         ev.runner.workers,
         task1.evaluation_order(ids, cards),
         lambda m: evaluate_model.submit(m, str(stage.params_file), band),
+        "evaluate models",
     )
     results = [done[m] for m in ids]
 

@@ -1,18 +1,21 @@
-"""The ``export@<backbone>-<size>`` and ``export-variant@<name>`` stages: a trained model → ``registry/<model>/`` and
-the MLflow Model Registry.
+"""The ``export`` stage: every trained model of the grid and its variants → ``registry/<model>/`` and the MLflow Model
+Registry.
 
-``python -m flows.export --model cues-1000 [--params params.yaml]``. The model's graphs are exported to ONNX
+``python -m flows.export [--model ID ...] [--params params.yaml]``. Each model's graphs are exported to ONNX
 (:func:`components.export.onnx.export_posterior`, checked against torch in onnxruntime) with a model card (backbone,
 training size, θ order, units and bijection, input spec, training metrics, data hash, git commit, opset,
 onnxruntime version), then registered (:func:`flows.tracking.register_model`). The champion alias comes after the
-evaluation (the ``evaluate`` stage).
+evaluation (the ``evaluate`` stage). One process exports the models one after the other (a few seconds each): one
+stage instead of one per model saves the start-up of a Python process with torch, Prefect and MLflow per model, and
+the registry's version numbers are assigned by one writer.
 """
 
 from __future__ import annotations
 
 import time
 
-from prefect import flow
+from prefect import flow, task
+from tqdm.auto import tqdm
 
 from components.export.onnx import export_posterior
 from components.features.backbones import get_backbone
@@ -21,7 +24,7 @@ from flows import tracking
 from flows.stage import open_stage, parse_stage_args, use_all_cores
 
 
-@flow(name="export", log_prints=True)
+@task(name="export-model")
 def export_model(model_id: str, params_path: str) -> dict:
     """Export ``models/<model_id>`` into ``registry/<model_id>`` and register it in MLflow."""
     stage = open_stage(params_path)
@@ -59,14 +62,40 @@ def export_model(model_id: str, params_path: str) -> dict:
     return {"folder": str(folder), "export_seconds": seconds, **entry}
 
 
+@flow(name="export", log_prints=True)
+def export_all(params_path: str, models: list[str] | None = None) -> dict[str, dict]:
+    """Export ``models`` (default: the grid and its variants, ``params.model_ids()``) one after the other; model id →
+    what :func:`export_model` returns. Every model must be trained: the missing ones are named before any export."""
+    stage = open_stage(params_path)
+    params, paths = stage.params, stage.paths
+    ids = list(models) if models else params.model_ids()
+    unknown = [m for m in ids if m not in params.model_ids()]
+    if unknown:
+        raise ValueError(
+            f"no model {', '.join(map(repr, unknown))} in the grid or train.variants (known: {', '.join(params.model_ids())})"
+        )
+    missing = [m for m in ids if not (paths.models / m / "model.pt").is_file()]
+    if missing:
+        raise FileNotFoundError(f"no trained model for {', '.join(missing)} in {paths.models} (run `dvc repro train`)")
+    return {m: export_model(m, params_path) for m in tqdm(ids, desc="export models", unit="model")}
+
+
 def main(argv: list[str] | None = None) -> None:
     args, _ = parse_stage_args(
-        "Export one trained model to registry/ and the MLflow Model Registry.",
+        "Export the trained models to registry/ and the MLflow Model Registry (the export stage).",
         argv,
-        [(["--model"], {"required": True, "help": "model id, e.g. cues-1000 or cues-10000-ensemble"})],
+        [
+            (
+                ["--model"],
+                {
+                    "action": "append",
+                    "help": "a model id, e.g. cues-5000 or cues-50000-ensemble (repeatable; default: all)",
+                },
+            )
+        ],
     )
     use_all_cores()
-    export_model(args.model, str(args.params))
+    export_all(str(args.params), args.model)
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,6 +32,7 @@ __all__ = [
     "task_runner",
     "share_api_with_workers",
     "wait_with_progress",
+    "at_most",
 ]
 
 
@@ -118,5 +119,21 @@ def wait_with_progress(futures: Iterable[PrefectFuture], desc: str, total: int |
     with tqdm(total=total if total is not None else len(futures), desc=desc, unit="task") as bar:
         for fut in as_completed(futures):
             results.append(fut.result())
+            bar.update(1)
+    return results
+
+
+def at_most(workers: int, items: Sequence[str], submit: Callable[[str], PrefectFuture], desc: str) -> dict[str, Any]:
+    """Run ``submit(item)`` for every item in order, at most ``workers`` in flight (whatever the flow's task runner: a
+    deployment's default thread pool would otherwise start them all at once); results by item. Raises the first
+    failure."""
+    queue, pending, results = list(items), {}, {}
+    with tqdm(total=len(queue), desc=desc, unit="task") as bar:
+        while queue or pending:
+            while queue and len(pending) < workers:
+                item = queue.pop(0)
+                pending[submit(item)] = item
+            finished = next(as_completed(list(pending)))
+            results[pending.pop(finished)] = finished.result()
             bar.update(1)
     return results

@@ -26,7 +26,7 @@ what is tracked, and how runs and registered models are named, is written in one
 
 The tracking store is ``MLFLOW_TRACKING_URI`` or ``sqlite:///<project>/mlflow.db``.
 
-Used by the ``train``, ``variant``, ``export``, ``export-variant``, ``evaluate``, ``task2`` and ``task3`` stages and the
+Used by the ``train``, ``export``, ``evaluate``, ``task2`` and ``task3`` stages and the
 scheduled monitoring (``flows/monitor.py``, no stage).
 """
 
@@ -153,8 +153,8 @@ def _log_data_input(
 
 
 def grid_key(params: Params, data_hash: str) -> str:
-    """Identifies a grid: the data and every training setting except the sizes and the variants beside it."""
-    settings = params.train.model_dump(exclude={"sizes", "variants"}) | {
+    """Identifies a grid: the data and every training setting except the sizes, the variants beside it and the runner."""
+    settings = params.train.model_dump(exclude={"sizes", "variants", "runner"}) | {
         "seed": params.seed,
         "data": data_hash,
         "backbones": list(params.backbones.names),
@@ -210,6 +210,20 @@ class ModelRun:
             mlflow.log_artifact(str(p))
 
 
+def grid_run(base: Path, params: Params, data_hash: str) -> str:
+    """The id of the grid's parent run (found, or created, with the training data as its dataset input): the train
+    stage opens it before its workers start, so that models trained in parallel find one parent and one dataset
+    instead of each creating its own."""
+    client = _client(base)
+    experiment_id = _experiment_id(client, params.train.experiment)
+    key = grid_key(params, data_hash)
+    # the grid run by its name too: its model runs carry the tag pidc.grid as well
+    parent = _find_or_create_run(client, experiment_id, _grid_tags(key), f"grid-{key}")
+    # the dataset entity is created here, once: models logging it at once from parallel workers would race to insert it
+    _log_data_input(client, parent, base, "training")
+    return parent
+
+
 @contextmanager
 def model_run(base: Path, params: Params, model_id: str, data_hash: str, tags: Mapping[str, str]) -> Iterator[ModelRun]:
     """The MLflow run of ``model_id`` under its grid's parent run (both found or created), active inside the block;
@@ -217,12 +231,11 @@ def model_run(base: Path, params: Params, model_id: str, data_hash: str, tags: M
     client = _client(base)
     experiment_id = _experiment_id(client, params.train.experiment)
     key = grid_key(params, data_hash)
-    # the grid run by its name too: its model runs carry the tag pidc.grid as well
+    # found, not re-logged: the train stage's flow created it with its dataset input (grid_run) before any worker
     parent = _find_or_create_run(client, experiment_id, _grid_tags(key), f"grid-{key}")
     run_id = _find_or_create_run(
         client, experiment_id, {"pidc.model": model_id, "pidc.grid": key}, model_id, parent=parent
     )
-    _log_data_input(client, parent, base, "training")
     _log_data_input(client, run_id, base, "training", {"images_used": str(tags.get("pidc.size", ""))})
     with mlflow.start_run(run_id=run_id, experiment_id=experiment_id):
         mlflow.set_tags(

@@ -1,8 +1,12 @@
-"""The ``train@<backbone>-<size>`` and ``variant@<name>`` stages: one NPE, trained and logged in MLflow.
+"""The ``train`` stage: every NPE of the grid and its calibrated variants, trained in parallel and logged in MLflow.
 
-``python -m flows.train --backbone cues --size 1000 [--variant NAME] [--params params.yaml]``. The model trains on
-the first ``size`` images of the train split (cached backbone outputs), stops early on the validation loss, resumes
-from its checkpoint after a kill, and is scored on the test split (NLL and information gain over the prior).
+``python -m flows.train [--model ID ...] [--params params.yaml]``. Each model (``<backbone>-<size>`` of the grid,
+``<backbone>-<size>-<variant>`` of ``train.variants``) trains on the first ``size`` images of the train split (cached
+backbone outputs), stops early on the validation loss, resumes from its checkpoint after a kill, and is scored on the
+test split (NLL and information gain over the prior). ``train.runner.workers`` models train at a time, the largest
+first, with ``cores // workers`` torch threads each: a training step of these small flows is no faster on two threads
+than on one, so one model per core halves the stage (BENCHMARKS.md, "Training the grid in parallel"). A model whose
+configuration is unchanged finds its finished checkpoint (keyed by the configuration) and costs seconds.
 MLflow (:mod:`flows.tracking`): one parent run per grid, one child run per model.
 """
 
@@ -10,12 +14,13 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import time
 from dataclasses import asdict
 
 import numpy as np
 import torch
-from prefect import flow
+from prefect import flow, task
 
 from components.core import seeding
 from components.core.config import Params, VariantConfig
@@ -30,7 +35,10 @@ from components.posterior.store import save_npe
 from components.posterior.temperature import calibrate
 from components.simulate import dataset
 from flows import tracking
-from flows.stage import open_stage, parse_stage_args, use_all_cores
+from flows.stage import at_most, open_stage, parse_stage_args, share_api_with_workers, task_runner
+
+#: the stage's name in dvc.yaml (tagged on every model's MLflow run)
+STAGE = "train"
 
 
 def find_variant(params: Params, name: str) -> VariantConfig:
@@ -39,10 +47,39 @@ def find_variant(params: Params, name: str) -> VariantConfig:
     return params.train.variants[name]
 
 
-@flow(name="train", log_prints=True)
-def train_model(backbone_name: str, size: int, params_path: str, variant_name: str | None = None) -> dict:
-    """Train model ``<backbone>-<size>`` of the grid, or the calibrated variant ``<backbone>-<size>-<variant>``;
-    write ``models/<id>/`` and ``reports/train/<id>.json`` and log to MLflow."""
+def grid_cell(params: Params, model_id: str) -> tuple[str, int, str | None]:
+    """``(backbone, size, variant name or None)`` of a model id of the grid or its variants; a ``ValueError`` naming
+    the known ids otherwise."""
+    for b in params.backbones.names:
+        for n in params.train.sizes:
+            if model_id == f"{b}-{n}":
+                return b, n, None
+    for name, v in params.train.variants.items():
+        if model_id == f"{v.backbone}-{v.size}-{name}":
+            return v.backbone, v.size, name
+    raise ValueError(f"no model {model_id!r} in the grid or train.variants (known: {', '.join(params.model_ids())})")
+
+
+def training_order(params: Params, ids: list[str]) -> list[str]:
+    """``ids`` with the largest training sets first, then the ensembles of more flows (ties keep their order), so
+    that parallel workers finish together."""
+
+    def cost(model_id: str) -> tuple[int, int]:
+        _, size, variant = grid_cell(params, model_id)
+        return size, find_variant(params, variant).ensemble if variant else params.train.flow.ensemble
+
+    return sorted(ids, key=cost, reverse=True)
+
+
+@task(name="train-model")
+def train_model(
+    backbone_name: str, size: int, params_path: str, variant_name: str | None = None, threads: int | None = None
+) -> dict:
+    """Train model ``<backbone>-<size>`` of the grid, or the calibrated variant ``<backbone>-<size>-<variant>``, with
+    ``threads`` torch threads (None: torch's default); write ``models/<id>/`` and ``reports/train/<id>.json`` and log
+    to MLflow. Returns the model's metrics."""
+    if threads:
+        torch.set_num_threads(threads)
     stage = open_stage(params_path)
     params, paths = stage.params, stage.paths
     if backbone_name not in params.backbones.names:
@@ -106,7 +143,7 @@ def train_model(backbone_name: str, size: int, params_path: str, variant_name: s
     tags = {
         "pidc.backbone": backbone_name,
         "pidc.size": str(size),
-        "dvc_stage": f"variant@{variant_name}" if variant else f"train@{model_id}",
+        "dvc_stage": STAGE,
     }
     with tracking.model_run(paths.root, params, model_id, data_hash, tags) as run:
         run.log_params(
@@ -126,8 +163,8 @@ def train_model(backbone_name: str, size: int, params_path: str, variant_name: s
             (x["val"], theta["val"]),
             cfg,
             checkpoint=checkpoint,
-            callback=run.log_epoch,
-            progress=True,
+            callback=_reporting(run.log_epoch, stage.logger, model_id, cfg.epochs),
+            progress=False,  # parallel workers: one log line per tenth of the epochs instead of interleaved bars
         )
         model.eval()
         # post-hoc calibration on the validation split (deterministic: resuming re-fits the same τ)
@@ -173,18 +210,74 @@ def train_model(backbone_name: str, size: int, params_path: str, variant_name: s
     return metrics
 
 
+def _reporting(log_epoch, logger, model_id: str, epochs: int):
+    """The training callback: ``log_epoch`` (MLflow) every epoch, a log line every tenth of ``epochs``."""
+    every = max(1, epochs // 10)
+
+    def callback(record) -> None:
+        log_epoch(record)
+        if (record.epoch + 1) % every == 0 or record.epoch == 0:
+            logger.info(
+                "%s: epoch %d of at most %d, validation loss %.3f (best at epoch %d), %.1f s an epoch",
+                model_id,
+                record.epoch + 1,
+                epochs,
+                record.val_loss,
+                record.best_epoch + 1,
+                record.wall_time,
+            )
+
+    return callback
+
+
+@flow(name="train", log_prints=True)
+def train_grid(params_path: str, models: list[str] | None = None) -> dict[str, dict]:
+    """Train ``models`` (default: the grid and its variants, ``params.model_ids()``), ``train.runner.workers`` at a
+    time, the costliest first. Returns model id → metrics."""
+    stage = open_stage(params_path)
+    params, paths = stage.params, stage.paths
+    ids = list(models) if models else params.model_ids()
+    cells = {m: grid_cell(params, m) for m in ids}  # an unknown id fails here, before any work
+    data_hash = dataset.open_split(paths.data, "train").content_hash
+    tracking.grid_run(paths.root, params, data_hash)  # created once, before the workers look it up
+    workers = params.train.runner.workers
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    stage.logger.info("training %d models, %d at a time with %d torch threads each", len(ids), workers, threads)
+    share_api_with_workers()
+    results = at_most(
+        workers,
+        training_order(params, ids),
+        lambda m: train_model.submit(cells[m][0], cells[m][1], str(stage.params_file), cells[m][2], threads),
+        "train models",
+    )
+    results = {m: results[m] for m in ids}
+    for m, r in results.items():
+        stage.logger.info(
+            "%s: information gain %.2f nats, best epoch %d of %d, %.0f s",
+            m,
+            r["info_gain_nats"],
+            r["best_epoch"],
+            r["epochs_run"],
+            r["wall_seconds"],
+        )
+    return results
+
+
 def main(argv: list[str] | None = None) -> None:
-    args, _ = parse_stage_args(
-        "Train one NPE of the backbone × size grid (the train stage), or a calibrated variant.",
+    args, params = parse_stage_args(
+        "Train the NPEs of the backbone × size grid and the calibrated variants (the train stage).",
         argv,
         [
-            (["--backbone"], {"required": True}),
-            (["--size"], {"type": int, "required": True}),
-            (["--variant"], {"help": "a name from train.variants (a calibrated model beside the grid)"}),
+            (
+                ["--model"],
+                {
+                    "action": "append",
+                    "help": "a model id of the grid or train.variants, e.g. cues-5000 (repeatable; default: all)",
+                },
+            )
         ],
     )
-    use_all_cores()
-    train_model(args.backbone, args.size, str(args.params), args.variant)
+    train_grid.with_options(task_runner=task_runner(params.train.runner))(str(args.params), args.model)
 
 
 if __name__ == "__main__":

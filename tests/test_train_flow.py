@@ -75,17 +75,67 @@ def test_train_logs_the_grid_in_mlflow_and_saves_a_loadable_model(project, monke
     assert {"test_nll", "info_gain_nats", "wall_seconds", "temperature.cloudiness"} <= set(child.data.metrics)
     assert len(client.get_metric_history(child.info.run_id, "val_loss")) == 3
     assert {a.path for a in client.list_artifacts(child.info.run_id)} >= {"loss.png", "metrics.json", "model.pt"}
-    assert child.data.tags["data_hash"] and child.data.tags["dvc_stage"] == "train@cues-16"
+    assert child.data.tags["data_hash"] and child.data.tags["dvc_stage"] == "train"
 
 
 def test_bad_grid_cell_is_named(project):
-    from flows.train import train_model
+    from flows.export import export_all
+    from flows.train import train_grid, train_model
 
     _, params = project
     with pytest.raises(ValueError, match=r"size 5 is not in train.sizes"):
         train_model("cues", 5, str(params))
     with pytest.raises(ValueError, match=r"backbone 'resnet50' is not in backbones.names"):
         train_model("resnet50", 8, str(params))
+    with pytest.raises(ValueError, match=r"no model 'cues-5' in the grid or train.variants \(known: cues-8, "):
+        train_grid(str(params), ["cues-5"])
+    with pytest.raises(ValueError, match=r"no model 'cues-16-wide' in the grid"):
+        export_all(str(params), ["cues-16-wide"])
+
+
+def test_train_grid_trains_every_model_in_parallel_processes_and_resumes(project, monkeypatch, tmp_path):
+    """The train stage's flow: the grid and its variants in two worker processes, the largest first, one MLflow parent
+    run for the grid; run again, every model resumes from its finished checkpoint to the same figures."""
+    import yaml
+
+    from components.core.config import load_params
+    from flows.stage import task_runner
+    from flows.train import train_grid, training_order
+
+    folder, params = project
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"  # a store of its own: the parents of this test's grid only
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    p = yaml.safe_load(params.read_text())
+    p["backbones"]["names"] = ["cues", "cnn"]
+    p["train"]["sizes"] = [24]
+    p["train"]["variants"] = {"pair": {"backbone": "cues", "size": 24, "balance": 0.0, "ensemble": 2}}
+    p["train"]["runner"] = {"kind": "processes", "workers": 2, "dask_address": None}
+    grid = folder / "parallel.yaml"
+    grid.write_text(yaml.safe_dump(p))
+    loaded = load_params(grid)
+    assert training_order(loaded, loaded.model_ids()) == ["cues-24-pair", "cues-24", "cnn-24"]
+
+    run = train_grid.with_options(task_runner=task_runner(loaded.train.runner))
+    first = run(str(grid))
+    assert list(first) == ["cues-24", "cnn-24", "cues-24-pair"]
+    for m, metrics in first.items():
+        assert np.isfinite(metrics["test_nll"]) and metrics["epochs_run"] == (2 if m.startswith("cnn") else 3), m
+        assert json.loads((folder / f"reports/train/{m}.json").read_text()) == metrics
+        assert (folder / f"models/{m}/model.pt").is_file()
+    _, header = load_npe(folder / "models/cues-24-pair/model.pt")
+    assert header["flow"]["ensemble"] == 2
+
+    again = run(str(grid))  # finished checkpoints: nothing is trained again, the figures are the same
+    for m in first:
+        assert again[m]["test_nll"] == first[m]["test_nll"] and again[m]["best_val_loss"] == first[m]["best_val_loss"]
+
+    client = mlflow.MlflowClient(uri)
+    runs = client.search_runs([client.get_experiment_by_name("pidc-grid").experiment_id])
+    parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
+    children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
+    assert len(parents) == 1, "models trained in parallel share one parent run"
+    assert {r.data.tags["pidc.model"] for r in children} == set(first)
+    assert all(r.data.tags["mlflow.parentRunId"] == parents[0].info.run_id for r in children)
 
 
 def test_export_evaluate_champion(project, monkeypatch, capsys):

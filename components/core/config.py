@@ -194,6 +194,8 @@ class TrainConfig(_Section):
     temperature: bool
     #: calibrated variants trained and evaluated beside the grid
     variants: dict[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")], VariantConfig]
+    #: the task runner training the models in parallel (processes: ``cores // workers`` torch threads each)
+    runner: RunnerConfig
 
     @model_validator(mode="after")
     def _min_lr(self) -> TrainConfig:
@@ -472,6 +474,11 @@ class Params(_Section):
     def box(self) -> weather.Box:
         """The uniform prior's support in θ-space."""
         return weather.Box.from_mapping(self.prior)
+
+    def model_ids(self) -> list[str]:
+        """The grid's models (``<backbone>-<size>``), then the calibrated variants (``<backbone>-<size>-<name>``)."""
+        grid = [f"{b}-{s}" for b in self.backbones.names for s in self.train.sizes]
+        return grid + [f"{v.backbone}-{v.size}-{name}" for name, v in self.train.variants.items()]
 
 
 def _format_error(path: Path, err: ValidationError) -> str:

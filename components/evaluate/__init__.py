@@ -10,7 +10,7 @@
 - :mod:`~components.evaluate.champion`: the rule that names the champion and the runner-up.
 - :mod:`~components.evaluate.summary`: per-parameter medians and highest-density intervals of draws (the CLI).
 
-Used by the ``evaluate`` stage; ``diagnostics`` also by the ``train``, ``variant``, ``task2`` and ``task3`` stages and
+Used by the ``evaluate`` stage; ``diagnostics`` also by the ``train``, ``task2`` and ``task3`` stages and
 the ``pidc`` CLI (through the plots and the sweep), ``summary`` by the CLI only.
 """
 

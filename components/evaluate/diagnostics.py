@@ -17,8 +17,8 @@ arrays or CPU tensors; results are numpy float64.
 * calibration band: the calibration error a perfectly calibrated model shows on n images by chance alone (its
   q-quantile, simulated): an observed calibration error inside the band is calibrated within noise.
 
-Used by the ``evaluate``, ``task2`` and ``task3`` stages, and through :mod:`components.plots` by the ``train`` and
-``variant`` stages and the ``pidc`` CLI.
+Used by the ``evaluate``, ``task2`` and ``task3`` stages, and through :mod:`components.plots` by the ``train`` stage
+and the ``pidc`` CLI.
 """
 
 from __future__ import annotations

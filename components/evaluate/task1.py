@@ -20,7 +20,6 @@ from components.evaluate.ppc import PPCResult, posterior_predictive_check
 
 __all__ = [
     "LEVELS",
-    "model_ids",
     "evaluation_order",
     "images_evaluated",
     "check_model_matches_data",
@@ -32,12 +31,6 @@ __all__ = [
 
 #: the credibility levels of the expected-coverage curves
 LEVELS = diagnostics.DEFAULT_LEVELS
-
-
-def model_ids(params: Params) -> list[str]:
-    """The grid's models (``<backbone>-<size>``), then the calibrated variants (``<backbone>-<size>-<name>``)."""
-    grid = [f"{b}-{s}" for b in params.backbones.names for s in params.train.sizes]
-    return grid + [f"{v.backbone}-{v.size}-{name}" for name, v in params.train.variants.items()]
 
 
 def evaluation_order(ids: list[str], cards: dict[str, dict]) -> list[str]:

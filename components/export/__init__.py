@@ -1,4 +1,4 @@
-"""export — the ``export@<model>`` stages and what reads their output: ONNX graphs in ``registry/<model>/``.
+"""export — the ``export`` stage and what reads their output: ONNX graphs in ``registry/<model>/``.
 
 - :mod:`~components.export.onnx`: ``export_posterior(model, folder, card=…, exporter=…)``: context, log-density,
   sampling and whole-density graphs, checked against torch, and the model card.
@@ -7,7 +7,7 @@
 - :mod:`~components.export.lookup`: models of the ``registry/`` folder by id or ``champion``, paired with their
   backbone (``load_registered``, ``RegisteredPosterior``, ``CHAMPION_POINTER``).
 
-Used by the ``export`` and ``export-variant`` stages (``onnx``), and by the ``evaluate``, ``task2`` and ``task3`` stages
+Used by the ``export`` stage (``onnx``), and by the ``evaluate``, ``task2`` and ``task3`` stages
 and the ``pidc`` CLI (``runtime``, ``lookup``).
 """
 

@@ -23,7 +23,7 @@ is not in the graphs: the runtime applies it in float64 numpy. ``card.json`` des
 (backbone, training size, metrics, versions). The folder is written atomically: a temporary sibling folder, then a
 rename (:func:`components.core.files.atomic_folder`).
 
-Used by the ``export`` and ``export-variant`` stages.
+Used by the ``export`` stage.
 """
 
 from __future__ import annotations

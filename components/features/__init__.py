@@ -6,8 +6,8 @@
   ``inputs_from_cached`` (cached output → the posterior's input ``x``), ``posterior_inputs`` (images → ``x``).
 - :mod:`~components.features.options`: ``backbone_options(name, params, root)``.
 
-Used by every stage but ``generate``, and by the ``pidc`` CLI (``options`` by ``features``, ``train`` and ``variant``
-only; ``cache`` by all but the export stages).
+Used by every stage but ``generate``, and by the ``pidc`` CLI (``options`` by ``features`` and ``train``
+only; ``cache`` by all but the export stage).
 """
 
 __all__ = ["backbones", "cache", "options"]

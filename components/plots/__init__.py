@@ -10,7 +10,7 @@ function returns a :class:`matplotlib.figure.Figure`, written with :func:`save_f
 * training: :func:`loss_curves`;
 * highest-density regions from samples: :func:`hdr_log_threshold` and its 2-D grid counterpart.
 
-Used by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and the ``pidc`` CLI.
+Used by the ``train``, ``evaluate``, ``task2`` and ``task3`` stages and the ``pidc`` CLI.
 """
 
 from components.plots.calibration import coverage_plot, model_styles, superiority_boxplot

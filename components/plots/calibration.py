@@ -3,7 +3,7 @@
 Both compare several models (the paper's 9: 3 backbones × 3 training sizes). Models named
 ``"<backbone>-<size>"`` (e.g. ``"resnet-50k"``) get one colour per backbone and one line style per size.
 
-Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+Used (through :mod:`components.plots`) by the ``train``, ``evaluate``, ``task2`` and ``task3`` stages and
 the ``pidc`` CLI.
 """
 

@@ -4,7 +4,7 @@ Figures are built with :class:`matplotlib.figure.Figure` and an explicit Agg can
 ``pyplot``: no global figure registry, no backend switch, so an interactive backend a caller may have
 selected keeps working, and nothing leaks between calls (no ``matplotlib.use`` here at all).
 
-Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+Used (through :mod:`components.plots`) by the ``train``, ``evaluate``, ``task2`` and ``task3`` stages and
 the ``pidc`` CLI.
 """
 

@@ -3,7 +3,7 @@
 Every check raises a ``ValueError`` (or ``TypeError`` for a wrong kind of object) that names the argument,
 the expected shape and what was received, before any plotting library sees the data.
 
-Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+Used (through :mod:`components.plots`) by the ``train``, ``evaluate``, ``task2`` and ``task3`` stages and
 the ``pidc`` CLI.
 """
 

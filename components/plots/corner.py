@@ -9,7 +9,7 @@ accumulated mass reaches α (:func:`components.plots.hdr.grid_hdr_thresholds`), 
 of the 2-D marginal's probability (up to the grid's resolution). The 6-D HDR projected onto a plane would
 enclose more than α of the 2-D marginal, which is why it is not used here.
 
-Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+Used (through :mod:`components.plots`) by the ``train``, ``evaluate``, ``task2`` and ``task3`` stages and
 the ``pidc`` CLI.
 """
 

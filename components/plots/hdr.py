@@ -6,7 +6,7 @@ of the samples has log q ≥ t_α. For a 2-D marginal, whose density is unknown,
 grid (histogram, lightly smoothed) and the cells are ordered by decreasing density; the threshold is the
 density of the cell at which the accumulated mass reaches α ("mass-ordered thresholds").
 
-Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+Used (through :mod:`components.plots`) by the ``train``, ``evaluate``, ``task2`` and ``task3`` stages and
 the ``pidc`` CLI.
 """
 

@@ -1,6 +1,6 @@
 """Sheets of images: the posterior predictive check (Task I, 3rd analysis) and bags of images (Task II).
 
-Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+Used (through :mod:`components.plots`) by the ``train``, ``evaluate``, ``task2`` and ``task3`` stages and
 the ``pidc`` CLI.
 """
 

@@ -1,6 +1,6 @@
 """Axis labels of the weather parameters, with their physical units (from :mod:`components.core.weather`).
 
-Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+Used (through :mod:`components.plots`) by the ``train``, ``evaluate``, ``task2`` and ``task3`` stages and
 the ``pidc`` CLI.
 """
 

@@ -1,6 +1,6 @@
 """Paper, Task I, 1st analysis: the 6 marginal histograms of a predicted weather distribution, HDR highlighted.
 
-Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+Used (through :mod:`components.plots`) by the ``train``, ``evaluate``, ``task2`` and ``task3`` stages and
 the ``pidc`` CLI.
 """
 

@@ -6,7 +6,7 @@ fixed (a point mass: every draw equal), as a vertical line at its value; optiona
 mixture of posteriors beside its deconvolution) dotted. A note per panel (e.g. the Wasserstein distances) goes into
 its title.
 
-Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+Used (through :mod:`components.plots`) by the ``train``, ``evaluate``, ``task2`` and ``task3`` stages and
 the ``pidc`` CLI.
 """
 

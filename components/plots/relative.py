@@ -1,7 +1,7 @@
 """Task III figures: box plots of d_E and of the mean square gap δ against the noise level η, and ROC curves
 of the out-of-ODD decision "δ above a threshold".
 
-Used (through :mod:`components.plots`) by the ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and
+Used (through :mod:`components.plots`) by the ``train``, ``evaluate``, ``task2`` and ``task3`` stages and
 the ``pidc`` CLI.
 """
 

@@ -8,7 +8,7 @@
 * :mod:`~components.posterior.train` — :func:`train` with :class:`TrainingConfig`, returning a :class:`History`;
 * :mod:`~components.posterior.temperature` — post-hoc calibration: the flows' base scale τ fitted on held-out pairs.
 
-Used by the ``train``, ``variant``, ``export`` and ``export-variant`` stages (``metrics``, ``settings`` and ``temperature`` by
+Used by the ``train`` and ``export`` stages (``metrics``, ``settings`` and ``temperature`` by
 ``train`` and ``variant`` only).
 """
 

@@ -15,7 +15,7 @@ so that densities convert as ``log q_θ(θ) = log q_z(z) − log|det ∂θ/∂z|
 :class:`components.core.weather.Box` serves boxes of any dimension ``d`` (θ ∈ ℝᵈ): the 6-D weather prior, and the
 1–2-D toys the posterior is tested on (``IntervalBox`` is the same class).
 
-Used by the ``train``, ``variant``, ``export`` and ``export-variant`` stages.
+Used by the ``train`` and ``export`` stages.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 The state is written to a temporary file in the same directory, flushed to disk, then renamed over the target
 with ``os.replace`` (atomic on POSIX and Windows within one file system): :func:`components.core.files.atomic_path`.
 
-Used by the ``train`` and ``variant`` stages; the ``export`` and ``export-variant`` stages import it only through
+Used by the ``train`` stage; the ``export`` stage imports it only through
 :mod:`components.posterior`.
 """
 

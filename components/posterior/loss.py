@@ -21,7 +21,7 @@ is the squared violation).
 
 For an ensemble (K flows), both terms are averaged over the members (each member is its own estimator).
 
-Used by the ``train`` and ``variant`` stages; the ``export`` and ``export-variant`` stages import it only through
+Used by the ``train`` stage; the ``export`` stage imports it only through
 :mod:`components.posterior`.
 """
 

@@ -5,7 +5,7 @@ from an explicit seed, so sampling here pushes noise ``ε ~ N(0, I)`` drawn from
 inverse transform: ``z = f⁻¹(ε | c)``, ``log q(z | c) = log N(ε; 0, I) − log|det ∂f⁻¹/∂ε|``. This relies on the
 flow's base being the standard normal, which is how :func:`zuko.flows.NSF` builds it (fixed buffers).
 
-Used by the ``train``, ``variant``, ``export`` and ``export-variant`` stages.
+Used by the ``train`` and ``export`` stages.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ With ``FlowConfig.ensemble = K > 1`` the estimator is the equal-weight mixture o
 initializations sharing the embedding: ``q(θ | x) = (1/K) Σₖ qₖ(θ | x)``. The members are trained together on the
 same batches, each on its own NPE loss (the loss is their mean), so they differ by their initialization only.
 
-Used by the ``train``, ``variant``, ``export`` and ``export-variant`` stages.
+Used by the ``train`` and ``export`` stages.
 """
 
 from __future__ import annotations

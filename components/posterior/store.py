@@ -6,7 +6,7 @@ trained weights come from the state dict), the context size, one input's shape, 
 hyper-parameters, the prior box and the θ names and units. ``load_npe`` refuses a file whose format
 it does not know.
 
-Used by the ``train``, ``variant``, ``export`` and ``export-variant`` stages.
+Used by the ``train`` and ``export`` stages.
 """
 
 from __future__ import annotations

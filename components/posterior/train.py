@@ -16,7 +16,7 @@ Randomness, all from ``TrainingConfig.seed`` (no global RNG state leaks):
 Hence a run killed after epoch ``e`` resumes from its checkpoint (model, AdamW and schedule state, best weights,
 early-stopping counters, history) and ends bit-for-bit like an uninterrupted run (same thread count and device).
 
-Used by the ``train`` and ``variant`` stages; the ``export`` and ``export-variant`` stages import it only through
+Used by the ``train`` stage; the ``export`` stage imports it only through
 :mod:`components.posterior`.
 """
 

@@ -16,7 +16,7 @@ azimuth of image ``i`` do not depend on the split's size (prefix property), so s
 are nested prefixes of the train split. Image ``i`` is rendered in scene ``i // images_per_scene``
 (a map/spawn point under several weathers, as data are collected in CARLA).
 
-Used by every stage but ``export`` and ``export-variant``, by the scheduled monitoring (new draws planned as the
+Used by every stage but ``export``, by the scheduled monitoring (new draws planned as the
 test split) and by the ``pidc`` CLI.
 """
 

@@ -42,12 +42,12 @@ class ProjectPaths:
 
     @property
     def models(self) -> Path:
-        """``models/``: one folder per trained model (the ``train``/``variant`` stages)."""
+        """``models/``: one folder per trained model (the ``train`` stage)."""
         return self.root / "models"
 
     @property
     def registry(self) -> Path:
-        """``registry/``: one exported ONNX folder per model (the ``export`` stages)."""
+        """``registry/``: one exported ONNX folder per model (the ``export`` stage)."""
         return self.root / "registry"
 
     def reports(self, *parts: str) -> Path:

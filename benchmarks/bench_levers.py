@@ -4,7 +4,8 @@ The ablation of BENCHMARKS.md ("Models that read the images"). Every setting tra
 features of the pipeline (``features/<backbone>/``, so run ``dvc repro features@cues`` first) and scores it on the
 test split — test NLL, information gain over the prior, calibration error (the KS distance of the HPD credibilities
 from uniform, :func:`components.evaluate.diagnostics.calibration_error`) with the 95 % band of a perfectly calibrated
-model on as many images, signed coverage area, and per parameter the daytime median |posterior median − truth| —
+model on as many images, signed coverage area, and per parameter the day and night median |posterior median − truth|
+and the share of truths inside the central 68 % interval —
 all from ``--samples`` posterior draws per test image, seeded.
 
 Levers (``--setting NAME``, several allowed):
@@ -120,6 +121,8 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
     nll = float(-lp_truth.mean())
     day = theta["test"][:, PREDICTED.index("sun_altitude_angle")] > 0
     err = np.abs(np.median(draws, axis=1) - theta["test"])
+    low, high = np.quantile(draws, [0.15865, 0.84135], axis=1)  # (N, 6) each
+    inside = (theta["test"] >= low) & (theta["test"] <= high)
     return {
         "setting": name,
         **s,
@@ -138,6 +141,9 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
         "coverage_auc_gap": float(np.trapezoid(coverage - levels, levels)),
         "day_median_abs_error": dict(zip(PREDICTED, np.median(err[day], axis=0).round(2).tolist(), strict=True)),
         "night_median_abs_error": dict(zip(PREDICTED, np.median(err[~day], axis=0).round(2).tolist(), strict=True)),
+        # share of the truths inside each marginal's central 68 % interval (#13's target for night images: 63–73 %)
+        "day_coverage68": dict(zip(PREDICTED, inside[day].mean(axis=0).round(3).tolist(), strict=True)),
+        "night_coverage68": dict(zip(PREDICTED, inside[~day].mean(axis=0).round(3).tolist(), strict=True)),
     }
 
 

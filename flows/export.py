@@ -69,11 +69,8 @@ def export_all(params_path: str, models: list[str] | None = None) -> dict[str, d
     stage = open_stage(params_path)
     params, paths = stage.params, stage.paths
     ids = list(models) if models else params.model_ids()
-    unknown = [m for m in ids if m not in params.model_ids()]
-    if unknown:
-        raise ValueError(
-            f"no model {', '.join(map(repr, unknown))} in the grid or train.variants (known: {', '.join(params.model_ids())})"
-        )
+    for m in ids:
+        params.model_cell(m)  # an unknown id fails here, naming the known ones
     missing = [m for m in ids if not (paths.models / m / "model.pt").is_file()]
     if missing:
         raise FileNotFoundError(f"no trained model for {', '.join(missing)} in {paths.models} (run `dvc repro train`)")

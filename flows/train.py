@@ -47,25 +47,12 @@ def find_variant(params: Params, name: str) -> VariantConfig:
     return params.train.variants[name]
 
 
-def grid_cell(params: Params, model_id: str) -> tuple[str, int, str | None]:
-    """``(backbone, size, variant name or None)`` of a model id of the grid or its variants; a ``ValueError`` naming
-    the known ids otherwise."""
-    for b in params.backbones.names:
-        for n in params.train.sizes:
-            if model_id == f"{b}-{n}":
-                return b, n, None
-    for name, v in params.train.variants.items():
-        if model_id == f"{v.backbone}-{v.size}-{name}":
-            return v.backbone, v.size, name
-    raise ValueError(f"no model {model_id!r} in the grid or train.variants (known: {', '.join(params.model_ids())})")
-
-
 def training_order(params: Params, ids: list[str]) -> list[str]:
     """``ids`` with the largest training sets first, then the ensembles of more flows (ties keep their order), so
     that parallel workers finish together."""
 
     def cost(model_id: str) -> tuple[int, int]:
-        _, size, variant = grid_cell(params, model_id)
+        _, size, variant = params.model_cell(model_id)
         return size, find_variant(params, variant).ensemble if variant else params.train.flow.ensemble
 
     return sorted(ids, key=cost, reverse=True)
@@ -237,10 +224,10 @@ def train_grid(params_path: str, models: list[str] | None = None) -> dict[str, d
     stage = open_stage(params_path)
     params, paths = stage.params, stage.paths
     ids = list(models) if models else params.model_ids()
-    cells = {m: grid_cell(params, m) for m in ids}  # an unknown id fails here, before any work
+    cells = {m: params.model_cell(m) for m in ids}  # an unknown id fails here, before any work
     data_hash = dataset.open_split(paths.data, "train").content_hash
     tracking.grid_run(paths.root, params, data_hash)  # created once, before the workers look it up
-    workers = params.train.runner.workers
+    workers = min(params.train.runner.workers, len(ids))  # one model alone gets every core
     threads = max(1, (os.cpu_count() or 1) // workers)
     stage.logger.info("training %d models, %d at a time with %d torch threads each", len(ids), workers, threads)
     share_api_with_workers()

@@ -420,3 +420,17 @@ def test_settings_refuse_to_leave_a_field_to_its_default():
 
     with pytest.raises(TypeError, match=r"missing \['min_lr'\]"):
         _every_field(TrainingConfig, {f.name: 0 for f in dataclasses.fields(TrainingConfig) if f.name != "min_lr"})
+
+
+def test_model_ids_and_their_cells_agree():
+    """Every model id of the grid and its variants maps back to its backbone, size and variant; others are named."""
+    raw = yaml.safe_load((PROJECT_ROOT / "params.yaml").read_text())
+    raw["train"]["variants"] = {"pair": {"backbone": "cues", "size": 5000, "balance": 0.0, "ensemble": 2}}
+    params = parse_params(raw)
+    ids = params.model_ids()
+    assert len(ids) == len(params.backbones.names) * len(params.train.sizes) + 1 and ids[-1] == "cues-5000-pair"
+    for m in ids:
+        backbone, size, variant = params.model_cell(m)
+        assert m == f"{backbone}-{size}" + (f"-{variant}" if variant else "")
+    with pytest.raises(ValueError, match=r"no model 'cues-7' in the grid or train.variants \(known: cues-5000, "):
+        params.model_cell("cues-7")

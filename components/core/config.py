@@ -475,10 +475,23 @@ class Params(_Section):
         """The uniform prior's support in θ-space."""
         return weather.Box.from_mapping(self.prior)
 
+    def _model_cells(self) -> dict[str, tuple[str, int, str | None]]:
+        grid = {f"{b}-{s}": (b, s, None) for b in self.backbones.names for s in self.train.sizes}
+        return grid | {
+            f"{v.backbone}-{v.size}-{name}": (v.backbone, v.size, name) for name, v in self.train.variants.items()
+        }
+
     def model_ids(self) -> list[str]:
         """The grid's models (``<backbone>-<size>``), then the calibrated variants (``<backbone>-<size>-<name>``)."""
-        grid = [f"{b}-{s}" for b in self.backbones.names for s in self.train.sizes]
-        return grid + [f"{v.backbone}-{v.size}-{name}" for name, v in self.train.variants.items()]
+        return list(self._model_cells())
+
+    def model_cell(self, model_id: str) -> tuple[str, int, str | None]:
+        """``(backbone, size, variant name or None)`` of a model of the grid or its variants; a ``ValueError`` naming
+        the known model ids otherwise."""
+        cells = self._model_cells()
+        if model_id not in cells:
+            raise ValueError(f"no model {model_id!r} in the grid or train.variants (known: {', '.join(cells)})")
+        return cells[model_id]
 
 
 def _format_error(path: Path, err: ValidationError) -> str:

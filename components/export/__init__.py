@@ -1,4 +1,4 @@
-"""export — the ``export`` stage and what reads their output: ONNX graphs in ``registry/<model>/``.
+"""export — the ``export`` stage and what reads its output: ONNX graphs in ``registry/<model>/``.
 
 - :mod:`~components.export.onnx`: ``export_posterior(model, folder, card=…, exporter=…)``: context, log-density,
   sampling and whole-density graphs, checked against torch, and the model card.

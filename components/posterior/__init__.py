@@ -9,7 +9,7 @@
 * :mod:`~components.posterior.temperature` — post-hoc calibration: the flows' base scale τ fitted on held-out pairs.
 
 Used by the ``train`` and ``export`` stages (``metrics``, ``settings`` and ``temperature`` by
-``train`` and ``variant`` only).
+``train`` only).
 """
 
 from components.posterior.bijection import IntervalBox, ScaledLogit, as_interval_box

@@ -30,7 +30,7 @@ from components.features.backbones import get_backbone
 from components.features.options import backbone_options
 from components.posterior import NPE, train
 from components.posterior.metrics import mean_nll
-from components.posterior.settings import flow_config, training_config
+from components.posterior.settings import ensemble_for, flow_config, training_config
 from components.posterior.store import save_npe
 from components.posterior.temperature import calibrate
 from components.simulate import dataset
@@ -53,7 +53,7 @@ def training_order(params: Params, ids: list[str]) -> list[str]:
 
     def cost(model_id: str) -> tuple[int, int]:
         _, size, variant = params.model_cell(model_id)
-        return size, find_variant(params, variant).ensemble if variant else params.train.flow.ensemble
+        return size, find_variant(params, variant).ensemble if variant else ensemble_for(params.train, size)
 
     return sorted(ids, key=cost, reverse=True)
 
@@ -105,6 +105,7 @@ def train_model(
         trainable=backbone.trainable,
         seed=seeding.derive_seed(params.seed, "train") % 2**31,
         balance=variant.balance if variant else None,
+        ensemble=variant.ensemble if variant else None,
     )
     model_seed = seeding.derive_seed(params.seed, "model", model_id) % 2**31
     if backbone.trainable:

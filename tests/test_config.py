@@ -174,6 +174,8 @@ MISSING = [
     "task3.bags.b1.max_images",
     "task3.smoothing",
     "train.input_noise_max_size",
+    "train.compile_min_steps",
+    "train.ensemble_min_size",
     "evaluate.samples",
     "simulator.carla.fov",
     "monitor",
@@ -362,11 +364,18 @@ def test_settings_set_every_field_of_the_library_classes(profile, trainable, mon
     assert set(flow_kw) == {f.name for f in dataclasses.fields(FlowConfig)}
     assert set(train_kw) == {f.name for f in dataclasses.fields(TrainingConfig)}
     assert dataclasses.asdict(flow) == {**t.flow.model_dump(), "hidden_features": tuple(t.flow.hidden_features)}
-    same = {f.name for f in dataclasses.fields(TrainingConfig)} - {"epochs", "seed", "patience", "input_noise"}
+    same = {f.name for f in dataclasses.fields(TrainingConfig)} - {
+        "epochs",
+        "seed",
+        "patience",
+        "input_noise",
+        "compile",
+    }
     assert {k: getattr(cfg, k) for k in same} == {k: getattr(t, k) for k in same}
     assert cfg.patience == settings.patience_for(t, t.sizes[0])
     assert cfg.input_noise == settings.input_noise_for(t, t.sizes[0], trainable=trainable)
     assert cfg.epochs == settings.epochs_for(t, t.sizes[0], trainable=trainable) and cfg.seed == 11
+    assert cfg.compile == settings.compile_for(t, t.sizes[0], trainable=trainable)
 
 
 @pytest.mark.parametrize("trainable", [False, True])
@@ -412,6 +421,42 @@ def test_small_training_sets_train_longer_through_a_smaller_flow():
     assert input_noise_for(t, big // 4, trainable=False) == pytest.approx(2 * t.input_noise)  # σ ∝ 1/√n
     assert input_noise_for(t, t.input_noise_max_size + 1, trainable=False) == 0.0
     assert input_noise_for(t, big // 2, trainable=True) == 0.0
+
+
+def test_ensembles_from_their_minimum_size():
+    """ensemble_for: train.flow.ensemble flows from train.ensemble_min_size images, one below; a variant's count wins."""
+    from components.posterior.settings import ensemble_for, flow_config
+
+    t = load_params(PROJECT_ROOT / "params.yaml").train
+    t3 = t.model_copy(update={"flow": t.flow.model_copy(update={"ensemble": 3}), "ensemble_min_size": 20000})
+    assert [ensemble_for(t3, n) for n in (1, 19999, 20000, 50000)] == [1, 1, 3, 3]
+    assert flow_config(t3, size=5000).ensemble == 1 and flow_config(t3, size=20000).ensemble == 3
+    assert flow_config(t3, size=5000, ensemble=4).ensemble == 4
+    # an ensemble of K flows trains with 1/K of one flow's input noise; a variant's count wins here too
+    from components.posterior.settings import input_noise_for, training_config
+
+    one = t3.input_noise * math.sqrt(t3.scale_to / 20000)
+    assert input_noise_for(t3, 20000, trainable=False) == pytest.approx(one / 3)
+    assert input_noise_for(t3, 20000, trainable=False, ensemble=1) == pytest.approx(one)
+    assert training_config(t3, size=20000, trainable=False, seed=0, ensemble=2).input_noise == pytest.approx(one / 2)
+    assert all(ensemble_for(t, n) == (t.flow.ensemble if n >= t.ensemble_min_size else 1) for n in t.sizes)
+    with pytest.raises(ValueError, match="size must be a positive integer"):
+        ensemble_for(t, 0)
+
+
+def test_models_of_many_steps_compile_their_training_loss():
+    """compile_for: at least train.compile_min_steps optimizer steps (epochs × ⌈size / batch⌉); null: never."""
+    from components.posterior.settings import compile_for, epochs_for, training_config
+
+    t = load_params(PROJECT_ROOT / "params.yaml").train
+    for size in (*t.sizes, 1, 10**6):
+        for trainable in (False, True):
+            steps = epochs_for(t, size, trainable=trainable) * math.ceil(size / t.batch_size)
+            assert compile_for(t, size, trainable=trainable) == (steps >= t.compile_min_steps)
+            assert training_config(t, size=size, trainable=trainable, seed=0).compile == (steps >= t.compile_min_steps)
+    assert compile_for(t, max(t.sizes), trainable=False)  # the default grid's largest frozen-feature models compile
+    assert not compile_for(t.model_copy(update={"compile_min_steps": None}), max(t.sizes), trainable=False)
+    assert compile_for(t.model_copy(update={"compile_min_steps": 0}), 1, trainable=True)
 
 
 def test_settings_refuse_to_leave_a_field_to_its_default():

@@ -313,3 +313,33 @@ def test_evaluate_refuses_a_model_with_another_theta_order(project, tmp_path):
     reordered = weather.Box(box.low[::-1], box.high[::-1], tuple(reversed(box.names)), tuple(reversed(box.units)))
     with pytest.raises(ValueError, match="θ order"):
         check_model_matches_data(reordered, load_params(params), folder / "registry/cues-16/card.json")
+
+
+def test_models_from_the_ensemble_size_are_ensembles_with_less_noise(project, monkeypatch, tmp_path):
+    """train.flow.ensemble flows for the grid's models of at least train.ensemble_min_size images, one flow below;
+    the ensemble trains with 1/K of one flow's input noise (both recorded in the model's MLflow run)."""
+    import yaml
+
+    from flows.train import train_model
+
+    folder, params = project
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    p = yaml.safe_load(params.read_text())
+    p["train"]["flow"]["ensemble"] = 2
+    p["train"]["ensemble_min_size"] = 24
+    grid = folder / "ensembles.yaml"
+    grid.write_text(yaml.safe_dump(p))
+    for size, flows in ((24, 2), (8, 1)):
+        train_model("cues", size, str(grid))
+        _, header = load_npe(folder / f"models/cues-{size}/model.pt")
+        assert header["flow"]["ensemble"] == flows, size
+    client = mlflow.MlflowClient(uri)
+    runs = client.search_runs([client.get_experiment_by_name("pidc-grid").experiment_id])
+    noise = {
+        r.data.tags["pidc.model"]: float(r.data.params["train.input_noise"])
+        for r in runs
+        if "pidc.model" in r.data.tags
+    }
+    one = p["train"]["input_noise"] * (p["train"]["scale_to"] / 24) ** 0.5
+    assert noise["cues-24"] == pytest.approx(one / 2, rel=1e-6) and noise["cues-8"] > noise["cues-24"]

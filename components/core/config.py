@@ -131,7 +131,8 @@ class FlowParams(_Section):
     bins: Annotated[int, Field(ge=2)]
     #: 2 = coupling flow (fast sampling); null = fully autoregressive
     passes: PositiveInt | None
-    #: flows in an equal-weight ensemble (calibration beyond the paper; 1 = a single flow)
+    #: flows in an equal-weight ensemble for models of at least ``train.ensemble_min_size`` training images (fewer
+    #: images: one flow); calibration and sharpness beyond the paper; 1 = a single flow everywhere
     ensemble: PositiveInt
     #: standardize the flow's inputs with a mean/std fitted on the training set
     standardize: bool
@@ -189,9 +190,15 @@ class TrainConfig(_Section):
     #: (components/posterior/settings.py); 0 = none
     input_noise: Annotated[float, Field(ge=0)]
     input_noise_max_size: PositiveInt
+    #: models of at least this many training images are ensembles of ``train.flow.ensemble`` flows, the others one
+    #: flow (components/posterior/settings.py)
+    ensemble_min_size: PositiveInt
     #: after training, fit the flows' base scale τ (one per parameter) on the validation split by maximum
     #: likelihood (post-hoc calibration, components/posterior/temperature.py); false: τ = 1
     temperature: bool
+    #: a model trained for at least this many optimizer steps compiles its training loss with torch.compile (~50 s
+    #: once per model shape, then ~1.8× faster steps); null: never (components/posterior/settings.py)
+    compile_min_steps: NonNegativeInt | None
     #: calibrated variants trained and evaluated beside the grid
     variants: dict[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")], VariantConfig]
     #: the task runner training the models in parallel (processes: ``cores // workers`` torch threads each)

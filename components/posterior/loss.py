@@ -34,7 +34,7 @@ from torch import Tensor
 
 from components.posterior.model import NPE
 
-__all__ = ["LossParts", "balance_penalty", "npe_loss"]
+__all__ = ["LossParts", "balance_penalty", "npe_loss", "npe_loss_terms"]
 
 
 @dataclass(frozen=True)
@@ -74,6 +74,23 @@ def balance_penalty(
     return a[..., :h].mean(dim=-1) * a[..., h : 2 * h].mean(dim=-1)
 
 
+def npe_loss_terms(model: NPE, theta: Tensor, x: Tensor, *, balance: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
+    """The (balanced) NPE loss of a batch as scalar tensors ``(loss, nll, penalty)``, physical units.
+
+    The tensor-only core of :func:`npe_loss` (no conversion to Python numbers), which ``torch.compile`` traces into
+    one graph. Arguments as :func:`npe_loss`; ``penalty`` is a zero tensor for plain NPE (``balance`` = 0).
+    """
+    context = model.context(x)
+    log_q = model.log_prob_members(theta, context)  # (K, B)
+    nll = -log_q.mean()
+    if balance == 0.0:
+        return nll, nll, torch.zeros_like(nll)
+    log_prior = torch.full((), -model.box.log_volume(), dtype=log_q.dtype, device=log_q.device)
+    log_q_marginal = model.log_prob_members(theta.roll(1, dims=0), context)
+    penalty = balance_penalty(log_q, log_q_marginal, log_prior, log_prior).mean()
+    return nll + balance * penalty, nll, penalty
+
+
 def npe_loss(model: NPE, theta: Tensor, x: Tensor, *, balance: float = 0.0) -> LossParts:
     """The (balanced) NPE loss of a batch, physical units.
 
@@ -83,12 +100,5 @@ def npe_loss(model: NPE, theta: Tensor, x: Tensor, *, balance: float = 0.0) -> L
         x: ``(B, *input_shape)`` the matching simulations.
         balance: λ ≥ 0; 0 = plain NPE (the penalty is not computed).
     """
-    context = model.context(x)
-    log_q = model.log_prob_members(theta, context)  # (K, B)
-    nll = -log_q.mean()
-    if balance == 0.0:
-        return LossParts(nll, float(nll.detach()), 0.0)
-    log_prior = torch.full((), -model.box.log_volume(), dtype=log_q.dtype, device=log_q.device)
-    log_q_marginal = model.log_prob_members(theta.roll(1, dims=0), context)
-    penalty = balance_penalty(log_q, log_q_marginal, log_prior, log_prior).mean()
-    return LossParts(nll + balance * penalty, float(nll.detach()), float(penalty.detach()))
+    loss, nll, penalty = npe_loss_terms(model, theta, x, balance=balance)
+    return LossParts(loss, float(nll.detach()), float(penalty.detach()))

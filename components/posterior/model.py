@@ -209,7 +209,8 @@ class NPE(nn.Module):
             )
         if x.dim() < 1 or x.shape[0] == 0:
             raise ValueError(f"x must be a non-empty batch, got shape {tuple(x.shape)}")
-        if x.is_floating_point() and not bool(torch.isfinite(x).all()):
+        # torch.compile traces the training loss after train() has checked the whole data set: no per-batch check there
+        if not torch.compiler.is_compiling() and x.is_floating_point() and not bool(torch.isfinite(x).all()):
             raise ValueError("x contains NaN or infinite values")
         return x.to(device=self.device, dtype=self.dtype)
 
@@ -248,7 +249,7 @@ class NPE(nn.Module):
                 f"({', '.join(self.box.names)}), got {tuple(theta.shape)}"
             )
         theta = theta.to(device=self.device, dtype=torch.float64)
-        if not bool(torch.isfinite(theta).all()):
+        if not torch.compiler.is_compiling() and not bool(torch.isfinite(theta).all()):
             raise ValueError("θ contains NaN or infinite values")
         return theta
 

@@ -26,6 +26,8 @@ __all__ = [
     "patience_for",
     "hidden_for",
     "input_noise_for",
+    "compile_for",
+    "ensemble_for",
     "small_data_scale",
 ]
 
@@ -61,9 +63,20 @@ def hidden_for(train_section: TrainConfig, size: int) -> tuple[int, ...]:
     return tuple(min(w, max(32, 16 * round(w / math.sqrt(s) / 16))) for w in widths)
 
 
+def ensemble_for(train_section: TrainConfig, size: int) -> int:
+    """The flows of a model of ``size`` training images: ``train.flow.ensemble`` from ``train.ensemble_min_size``
+    images, one below. Two flows trained on the same batches from independent initializations average away part
+    of each one's idiosyncratic overconfidence and sharpen the posterior where the data suffice: on the 50k cues
+    (one seed, the whole test split) 6.68 → 7.08 nats with calibration error 0.019 → 0.034 without input noise
+    (BENCHMARKS.md, "An ensemble of flows at 50k")."""
+    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+        raise ValueError(f"size must be a positive integer, got {size!r}")
+    return train_section.flow.ensemble if size >= train_section.ensemble_min_size else 1
+
+
 def flow_config(train_section: TrainConfig, *, size: int, ensemble: int | None = None) -> FlowConfig:
-    """The conditional flow of ``train.flow`` for a model of ``size`` training images (:func:`hidden_for`);
-    ``ensemble`` (a variant's) replaces ``train.flow.ensemble``."""
+    """The conditional flow of ``train.flow`` for a model of ``size`` training images (:func:`hidden_for`,
+    :func:`ensemble_for`); ``ensemble`` (a variant's) replaces that count."""
     f = train_section.flow
     return FlowConfig(
         **_every_field(
@@ -74,7 +87,7 @@ def flow_config(train_section: TrainConfig, *, size: int, ensemble: int | None =
                 bins=f.bins,
                 passes=f.passes,
                 standardize=f.standardize,
-                ensemble=f.ensemble if ensemble is None else ensemble,
+                ensemble=ensemble_for(train_section, size) if ensemble is None else ensemble,
             ),
         )
     )
@@ -96,26 +109,51 @@ def patience_for(train_section: TrainConfig, size: int) -> int:
     return math.ceil(train_section.patience * small_data_scale(train_section, size))
 
 
-def input_noise_for(train_section: TrainConfig, size: int, *, trainable: bool) -> float:
+def input_noise_for(train_section: TrainConfig, size: int, *, trainable: bool, ensemble: int | None = None) -> float:
     """σ of the training-input noise for ``size`` frozen-feature training images: ``train.input_noise`` ×
-    √(``scale_to`` / size) up to ``train.input_noise_max_size`` images, 0 above and for a trainable backbone (it sees
-    images, not features). The noise a flow needs falls as 1/√n with its data: measured on the cues, σ = 0.3 at 5k and
+    √(``scale_to`` / size) / K up to ``train.input_noise_max_size`` images, 0 above and for a trainable backbone (it
+    sees images, not features); K is the model's number of flows (``ensemble``, by default :func:`ensemble_for`).
+    The noise a flow needs falls as 1/√n with its data: measured on the cues, σ = 0.3 at 5k and
     0.15 at 20k bring the tempered flows from 0.104 and 0.091 to 0.065 and 0.020 at no loss of information. At 50k the
     noise follows the training length: after 20 epochs 0.094 costs 0.1 nats and overshoots into underconfidence, after
     60 it keeps the calibration that longer training loses (0.080 → 0.022) for 0.05 of the 0.5 nats the 40 more
-    epochs gain (BENCHMARKS.md, "Cues version 3 and input noise", "Training the 50k models longer")."""
+    epochs gain (BENCHMARKS.md, "Cues version 3 and input noise", "Training the 50k models longer"). An ensemble
+    widens the posterior by its members' disagreement and needs less: two cues flows at 50k are overconfident without
+    noise (coverage gap −0.013), underconfident with 0.094 (+0.023) and calibrated with 0.047 (+0.003; BENCHMARKS.md,
+    "An ensemble of flows at 50k"); the 1/K is measured at K = 2 only."""
     if isinstance(size, bool) or not isinstance(size, int) or size < 1:
         raise ValueError(f"size must be a positive integer, got {size!r}")
     if trainable or size > train_section.input_noise_max_size:
         return 0.0
-    return float(train_section.input_noise) * math.sqrt(train_section.scale_to / size)
+    k = ensemble_for(train_section, size) if ensemble is None else ensemble
+    return float(train_section.input_noise) * math.sqrt(train_section.scale_to / size) / k
+
+
+def compile_for(train_section: TrainConfig, size: int, *, trainable: bool) -> bool:
+    """Whether a model of ``size`` training images compiles its training loss (``TrainingConfig.compile``): when it
+    takes at least ``train.compile_min_steps`` optimizer steps (:func:`epochs_for` × ⌈size / batch_size⌉). The
+    compilation costs ~50 s once per model shape (later processes reuse inductor's disk cache) and saves ~10 ms of
+    the ~25 ms a 256-sample step of the cues flow takes on one thread: it pays from a few thousand steps
+    (``benchmarks/bench_compile.py``, BENCHMARKS.md "Compiling the training step")."""
+    t = train_section
+    if t.compile_min_steps is None:
+        return False
+    steps = epochs_for(t, size, trainable=trainable) * math.ceil(size / t.batch_size)
+    return steps >= t.compile_min_steps
 
 
 def training_config(
-    train_section: TrainConfig, *, size: int, trainable: bool, seed: int, balance: float | None = None
+    train_section: TrainConfig,
+    *,
+    size: int,
+    trainable: bool,
+    seed: int,
+    balance: float | None = None,
+    ensemble: int | None = None,
 ) -> TrainingConfig:
     """The training settings of ``train`` for a model of ``size`` training images: :func:`epochs_for` epochs,
-    :func:`input_noise_for` noise; ``seed`` is the caller's; ``balance`` (a variant's) replaces ``train.balance``."""
+    :func:`input_noise_for` noise; ``seed`` is the caller's; ``balance`` and ``ensemble`` (a variant's) replace
+    ``train.balance`` and the flows of :func:`ensemble_for`."""
     t = train_section
     return TrainingConfig(
         **_every_field(
@@ -134,7 +172,8 @@ def training_config(
                 clip_norm=t.clip_norm,
                 seed=seed,
                 balance=t.balance if balance is None else balance,
-                input_noise=input_noise_for(t, size, trainable=trainable),
+                input_noise=input_noise_for(t, size, trainable=trainable, ensemble=ensemble),
+                compile=compile_for(t, size, trainable=trainable),
             ),
         )
     )

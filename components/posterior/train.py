@@ -37,7 +37,7 @@ from tqdm.auto import tqdm
 
 from components.core import seeding
 from components.posterior.checkpoint import load_checkpoint, save_checkpoint
-from components.posterior.loss import npe_loss
+from components.posterior.loss import npe_loss, npe_loss_terms
 from components.posterior.model import NPE
 
 __all__ = ["TrainingConfig", "EpochRecord", "History", "train", "check_split"]
@@ -67,6 +67,12 @@ class TrainingConfig:
             standard deviation (the model's ``feature_std``): x + σ·std·ε, ε ~ 𝒩(0, I), drawn anew every batch; a
             regularizer that keeps a flow trained on few simulations from trusting every feature to its last digit
             (0 = none; never at validation or inference).
+        compile: compile the training loss (forward and backward) with ``torch.compile`` (inductor: generated C++
+            kernels) and use AdamW's fused kernel; full batches only, the last, smaller batch of an epoch runs
+            eagerly. ~2× faster steps on a 2-core CPU after a compilation of ~50 s per model shape (cached on disk
+            for later processes); the kernels add floats in another order than eager torch, so the weights differ
+            from an eager run's in the last digits (and are, like those, reproducible on one machine and thread
+            count).
     """
 
     epochs: int = 200
@@ -83,6 +89,7 @@ class TrainingConfig:
     seed: int = 0
     balance: float = 0.0
     input_noise: float = 0.0
+    compile: bool = False
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "patience", "plateau_patience"):
@@ -114,6 +121,8 @@ class TrainingConfig:
             )
         if self.clip_norm is not None and not (isinstance(self.clip_norm, (int, float)) and self.clip_norm > 0):
             raise ValueError(f"TrainingConfig.clip_norm must be > 0 or None, got {self.clip_norm!r}")
+        if not isinstance(self.compile, bool):
+            raise ValueError(f"TrainingConfig.compile must be true or false, got {self.compile!r}")
 
 
 @dataclass(frozen=True)
@@ -285,6 +294,23 @@ def _evaluate(model: NPE, x: Tensor, theta: Tensor, config: TrainingConfig) -> t
     return tuple(float(v) for v in totals / x.shape[0])  # type: ignore[return-value]
 
 
+def _loss_terms(model: NPE, config: TrainingConfig) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]:
+    """``(θ, x) ↦ (loss, nll, penalty)`` of a training batch: :func:`npe_loss_terms`, compiled when ``config.compile``
+    (one graph for the full batch size; other sizes run eagerly, so a ragged last batch causes no recompilation)."""
+
+    def terms(theta: Tensor, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return npe_loss_terms(model, theta, x, balance=config.balance)
+
+    if not config.compile:
+        return terms
+    compiled = torch.compile(terms, dynamic=False)
+
+    def full_batches_compiled(theta: Tensor, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return compiled(theta, x) if theta.shape[0] == config.batch_size else terms(theta, x)
+
+    return full_batches_compiled
+
+
 def _fork_devices(model: NPE) -> list[int]:
     dev = model.device
     return [dev.index or 0] if dev.type == "cuda" else []
@@ -329,7 +355,10 @@ def train(
     fingerprint = _fingerprint(x_tr, th_tr) + _fingerprint(x_va, th_va)
     device = model.device
 
-    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    # compiled training also takes AdamW's fused kernel (one loop over all parameters: ~15 % of a compiled step)
+    opt = torch.optim.AdamW(
+        model.parameters(), lr=config.lr, weight_decay=config.weight_decay, fused=config.compile or None
+    )
     sched = _scheduler(opt, config)
     history = History()
     best_state: dict[str, Tensor] | None = None
@@ -397,6 +426,7 @@ def train(
         raise ValueError(
             "TrainingConfig.input_noise needs a model with standardization buffers (an NPE with input_shape)"
         )
+    loss_terms = _loss_terms(model, config)
     bar = tqdm(total=config.epochs, initial=start, desc="train NPE", unit="epoch", disable=not progress, leave=False)
     try:
         for epoch in range(start, config.epochs):
@@ -412,18 +442,19 @@ def train(
                     xb = x_tr[idx].to(device)
                     if config.input_noise > 0:
                         xb = xb + config.input_noise * noise_scale * torch.randn_like(xb)
-                    parts = npe_loss(model, th_tr[idx].to(device), xb, balance=config.balance)
-                    if not torch.isfinite(parts.loss):
+                    loss, nll, penalty = loss_terms(th_tr[idx].to(device), xb)
+                    values = np.array([float(loss.detach()), float(nll.detach()), float(penalty.detach())])
+                    if not math.isfinite(values[0]):
                         raise FloatingPointError(
-                            f"non-finite training loss at epoch {epoch}, batch {b} (nll {parts.nll}, penalty {parts.penalty}); "
+                            f"non-finite training loss at epoch {epoch}, batch {b} (nll {values[1]}, penalty {values[2]}); "
                             "lower TrainingConfig.lr or set clip_norm"
                         )
                     opt.zero_grad(set_to_none=True)
-                    parts.loss.backward()
+                    loss.backward()
                     if config.clip_norm is not None:
                         torch.nn.utils.clip_grad_norm_(model.parameters(), config.clip_norm)
                     opt.step()
-                    sums += len(idx) * np.array([float(parts.loss.detach()), parts.nll, parts.penalty])
+                    sums += len(idx) * values
             train_loss, train_nll, train_pen = (float(v) for v in sums / n)
             val_loss, val_nll, val_pen = _evaluate(model, x_va, th_va, config)
             if not math.isfinite(val_loss):

@@ -21,4 +21,17 @@ if [ "$(cat .venv/.pidc-setup 2>/dev/null)" != "$stamp" ]; then
   python -m pip check
   echo "$stamp" > .venv/.pidc-setup
 fi
+# torch.compile (the long trainings, train.compile_min_steps) builds C++ kernels with g++ (or $CXX): Debian's g++ when
+# none is there and apt-get can run as root; otherwise a warning naming the setting that trains without it
+if ! command -v "${CXX:-g++}" >/dev/null; then
+  if [ "$(id -u)" -eq 0 ]; then SUDO=""; elif command -v sudo >/dev/null && sudo -n true 2>/dev/null; then SUDO=sudo
+  else SUDO=none; fi
+  if command -v apt-get >/dev/null && [ "$SUDO" != none ]; then
+    echo "setup.sh: installing Debian's g++ (torch.compile's C++ kernels for the long trainings)"
+    { $SUDO apt-get update -qq && $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq g++ >/dev/null; } \
+      || echo "setup.sh: apt-get install g++ failed" >&2
+  fi
+  command -v "${CXX:-g++}" >/dev/null || echo "setup.sh: no C++ compiler (g++ or \$CXX): the train stage fails on" \
+    "models it compiles; install one or set train.compile_min_steps: null in params.yaml" >&2
+fi
 python -c "import torch, prefect, mlflow, dvc, zuko, cvxpy, onnxruntime, cv2, components; print('pidc', components.__version__, '| torch', torch.__version__, '| prefect', prefect.__version__)"

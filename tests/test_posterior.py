@@ -327,6 +327,22 @@ def test_compiled_training_is_eager_training_in_other_kernels() -> None:
     assert 0 < drift < 1e-3, drift  # other kernels (not the eager path), the same optimization
 
 
+def test_compiled_training_without_a_compiler_names_the_setting(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No working C++ compiler: a clear error naming the setting that turns compilation off, not inductor's trace."""
+    import torch._inductor.config as inductor
+
+    monkeypatch.setattr(inductor.cpp, "cxx", ("/nonexistent/g++",))
+    monkeypatch.setattr(inductor, "fx_graph_cache", False)  # compile for real, not from the disk cache
+    torch._dynamo.reset()
+    x, th = _data(40, 5)
+    cfg = TrainingConfig(epochs=1, batch_size=16, seed=3, compile=True)
+    try:
+        with pytest.raises(RuntimeError, match=r"C\+\+ compiler.*train.compile_min_steps: null"):
+            train(_model(), (x, th), (x, th), cfg, progress=False)
+    finally:
+        torch._dynamo.reset()
+
+
 def test_training_history_schedule_early_stopping_and_best_weights(tmp_path: object) -> None:
     x, th = _data(96, 1)
     xv, thv = _data(400, 2)

@@ -304,9 +304,25 @@ def _loss_terms(model: NPE, config: TrainingConfig) -> Callable[[Tensor, Tensor]
     if not config.compile:
         return terms
     compiled = torch.compile(terms, dynamic=False)
+    compiled_once = False
 
     def full_batches_compiled(theta: Tensor, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        return compiled(theta, x) if theta.shape[0] == config.batch_size else terms(theta, x)
+        nonlocal compiled_once
+        if theta.shape[0] != config.batch_size:
+            return terms(theta, x)
+        if compiled_once:
+            return compiled(theta, x)
+        try:  # the first call compiles: inductor needs a working C++ compiler
+            out = compiled(theta, x)
+        except Exception as err:
+            first_line = next((line for line in str(err).splitlines() if line.strip()), "")
+            raise RuntimeError(
+                f"TrainingConfig.compile: torch.compile could not compile the training loss ({type(err).__name__}: "
+                f"{first_line}). Compiling needs a C++ compiler (g++; scripts/setup.sh installs one where it can): "
+                "install one, or set train.compile_min_steps: null in params.yaml to train eagerly"
+            ) from err
+        compiled_once = True
+        return out
 
     return full_batches_compiled
 

@@ -30,7 +30,7 @@ from components.features.backbones import get_backbone
 from components.features.options import backbone_options
 from components.posterior import NPE, train
 from components.posterior.metrics import mean_nll
-from components.posterior.settings import ensemble_for, flow_config, training_config
+from components.posterior.settings import flow_config, training_config
 from components.posterior.store import save_npe
 from components.posterior.temperature import calibrate
 from components.simulate import dataset
@@ -53,7 +53,10 @@ def training_order(params: Params, ids: list[str]) -> list[str]:
 
     def cost(model_id: str) -> tuple[int, int]:
         _, size, variant = params.model_cell(model_id)
-        return size, find_variant(params, variant).ensemble if variant else ensemble_for(params.train, size)
+        flows = flow_config(
+            params.train, size=size, ensemble=find_variant(params, variant).ensemble if variant else None
+        )
+        return size, flows.ensemble
 
     return sorted(ids, key=cost, reverse=True)
 

@@ -69,7 +69,7 @@ class TrainingConfig:
             (0 = none; never at validation or inference).
         compile: compile the training loss (forward and backward) with ``torch.compile`` (inductor: generated C++
             kernels) and use AdamW's fused kernel; full batches only, the last, smaller batch of an epoch runs
-            eagerly. ~2× faster steps on a 2-core CPU after a compilation of ~50 s per model shape (cached on disk
+            eagerly. 1.7–1.9× faster steps on a 2-core CPU after a compilation of 35–50 s per model shape (cached on disk
             for later processes); the kernels add floats in another order than eager torch, so the weights differ
             from an eager run's in the last digits (and are, like those, reproducible on one machine and thread
             count).

@@ -13,6 +13,8 @@ Levers (``--setting NAME``, several allowed):
 * ``cues-v1-<n>``: the 80 version-1 cues (the first 80 columns of the cache), ``n`` training images;
 * ``cues-v2-<n>``: the 241 version-2 cues (the first 241 columns);
 * ``cues-v3-<n>``: all 273 cues of version 3 (the cache of today's ``cues``);
+* ``cues-v3+tiny-<n>``: those joined by the 256 features of the ``tiny`` backbone's cache (its 8×8 L*a*b* thumbnail
+  and per-cell contrast: where the light falls, finer than the cues' 4×4 grid; ``dvc repro features@tiny``);
 * ``…-e<k>``: ``k`` epochs instead of the pipeline's (``params.yaml`` ``train`` with its sample budget);
 * ``…-ens<k>``: an equal-weight ensemble of ``k`` flows;
 * ``…-n<σ>``: Gaussian noise of standard deviation σ added to the standardized inputs while training
@@ -56,20 +58,21 @@ from components.posterior.settings import flow_config, training_config  # noqa: 
 from components.posterior.temperature import calibrate  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 
-_SETTING = re.compile(r"^cues-(v1|v2|v3)-(\d+)(?:-ens(\d+))?(?:-e(\d+))?(?:-n([0-9.]+))?(-t)?$")
+_SETTING = re.compile(r"^cues-(v1|v2|v3)(\+tiny)?-(\d+)(?:-ens(\d+))?(?:-e(\d+))?(?:-n([0-9.]+))?(-t)?$")
 #: the leading columns of today's cues cache that each cue version computed
 COLUMNS = {"v1": 80, "v2": 241, "v3": None}
 
 
 def parse_setting(name: str) -> dict:
-    """``cues-v2-50000-ens3-e20-t`` → {version, size, ensemble, epochs, temperature}; ``ValueError`` naming the
+    """``cues-v2-50000-ens3-e20-t`` → {version, tiny, size, ensemble, epochs, temperature}; ``ValueError`` naming the
     grammar otherwise."""
     m = _SETTING.match(name)
     if not m:
-        raise ValueError(f"setting {name!r}: expected cues-(v1|v2|v3)-<size>[-ens<k>][-e<epochs>][-n<σ>][-t]")
-    v, size, ens, ep, noise, temp = m.groups()
+        raise ValueError(f"setting {name!r}: expected cues-(v1|v2|v3)[+tiny]-<size>[-ens<k>][-e<epochs>][-n<σ>][-t]")
+    v, tiny, size, ens, ep, noise, temp = m.groups()
     return {
         "version": v,
+        "tiny": bool(tiny),
         "size": int(size),
         "ensemble": int(ens or 1),
         "epochs": int(ep) if ep else None,
@@ -85,7 +88,10 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
     cols = COLUMNS[s["version"]]
 
     def feats(split: dataset.Split, stop: int | None = None) -> np.ndarray:
-        return cache.open_features(root / "features", "cues", split, stop=stop)[:, :cols].astype(np.float32)
+        cues = cache.open_features(root / "features", "cues", split, stop=stop)[:, :cols]
+        if s["tiny"]:
+            cues = np.concatenate([cues, cache.open_features(root / "features", "tiny", split, stop=stop)], axis=1)
+        return cues.astype(np.float32)
 
     x = {"train": feats(splits["train"], s["size"]), "val": feats(splits["val"]), "test": feats(splits["test"])}
     theta = {k: splits[k].theta[: len(v)].astype(np.float32) for k, v in x.items()}
@@ -106,23 +112,6 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
     model.eval()
     tempered = calibrate(model, torch.from_numpy(x["val"]), torch.from_numpy(theta["val"])) if s["temperature"] else {}
     seconds = time.perf_counter() - t0
-    xt, tt = torch.from_numpy(x["test"]), torch.from_numpy(theta["test"])
-    with torch.no_grad():
-        lp_truth = torch.cat([model.log_prob(tt[i : i + 500], xt[i : i + 500]) for i in range(0, len(xt), 500)])
-        draws, lps = [], []
-        for i in range(0, len(xt), 100):
-            d, lp = model.sample_and_log_prob(xt[i : i + 100], samples, rng=seed + i)
-            draws.append(d.numpy())
-            lps.append(lp.numpy())
-    draws, lp = np.concatenate(draws), np.concatenate(lps)  # (N, samples, 6), (N, samples)
-    cred = diagnostics.hpd_credibility(lp, lp_truth.numpy())
-    levels = diagnostics.DEFAULT_LEVELS
-    coverage = diagnostics.expected_coverage(cred, levels)
-    nll = float(-lp_truth.mean())
-    day = theta["test"][:, PREDICTED.index("sun_altitude_angle")] > 0
-    err = np.abs(np.median(draws, axis=1) - theta["test"])
-    low, high = np.quantile(draws, [0.15865, 0.84135], axis=1)  # (N, 6) each
-    inside = (theta["test"] >= low) & (theta["test"] <= high)
     return {
         "setting": name,
         **s,
@@ -131,9 +120,36 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
         "best_epoch": history.best_epoch,
         "train_seconds": round(seconds, 1),
         **tempered,
+        **score(model, torch.from_numpy(x["test"]), torch.from_numpy(theta["test"]), params.box, samples, seed),
+    }
+
+
+def score(model: NPE, xt: torch.Tensor, tt: torch.Tensor, box, samples: int, seed: int) -> dict:
+    """The scores of a trained ``model`` on test inputs ``xt (N, …)`` with truths ``tt (N, 6)`` (on the model's
+    device): test NLL, information gain over the prior ``box``, calibration error and its 95 % band, coverage gap, and
+    per parameter the day and night median |posterior median − truth| and central-68 % coverage, from ``samples``
+    draws per image seeded by ``seed``."""
+    with torch.no_grad():
+        lp_truth = torch.cat([model.log_prob(tt[i : i + 500], xt[i : i + 500]) for i in range(0, len(xt), 500)])
+        draws, lps = [], []
+        for i in range(0, len(xt), 100):
+            d, lp = model.sample_and_log_prob(xt[i : i + 100], samples, rng=seed + i)
+            draws.append(d.cpu().numpy())
+            lps.append(lp.cpu().numpy())
+    draws, lp = np.concatenate(draws), np.concatenate(lps)  # (N, samples, 6), (N, samples)
+    theta = tt.cpu().numpy()
+    cred = diagnostics.hpd_credibility(lp, lp_truth.cpu().numpy())
+    levels = diagnostics.DEFAULT_LEVELS
+    coverage = diagnostics.expected_coverage(cred, levels)
+    nll = float(-lp_truth.mean())
+    day = theta[:, PREDICTED.index("sun_altitude_angle")] > 0
+    err = np.abs(np.median(draws, axis=1) - theta)
+    low, high = np.quantile(draws, [0.15865, 0.84135], axis=1)  # (N, 6) each
+    inside = (theta >= low) & (theta <= high)
+    return {
         "test_images": len(xt),
         "test_nll": nll,
-        "info_gain_nats": params.box.log_volume() - nll,
+        "info_gain_nats": box.log_volume() - nll,
         "calibration_error": diagnostics.calibration_error(cred),
         "calibration_band": diagnostics.calibration_band(
             len(xt), samples, None, np.random.default_rng(seed), quantile=0.95, replicates=1000

@@ -196,8 +196,8 @@ class TrainConfig(_Section):
     #: after training, fit the flows' base scale τ (one per parameter) on the validation split by maximum
     #: likelihood (post-hoc calibration, components/posterior/temperature.py); false: τ = 1
     temperature: bool
-    #: a model trained for at least this many optimizer steps compiles its training loss with torch.compile (~50 s
-    #: once per model shape, then ~1.8× faster steps); null: never (components/posterior/settings.py)
+    #: a model trained for at least this many optimizer steps compiles its training loss with torch.compile (35–50 s
+    #: once per model shape, then 1.7–1.9× faster steps); null: never (components/posterior/settings.py)
     compile_min_steps: NonNegativeInt | None
     #: calibrated variants trained and evaluated beside the grid
     variants: dict[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")], VariantConfig]

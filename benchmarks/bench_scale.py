@@ -7,9 +7,10 @@ whether the issue's 8 nats are a matter of scale or of the images. On one machin
    plan, seed and renderer as the pipeline; ``--workers`` processes);
 2. computes the 273 cues of every image (``CuesBackbone``, on the device);
 3. trains, in the order of ``--models``, NPEs on the cues (``cues-<size>``) with the pipeline's settings for that size
-   (``components.posterior.settings``, temperature fitted on val) and *hybrids* (``hybrid-<size>[-e<epochs>]``): a
-   residual CNN on the full 128×128 image (no 2×2 reduction: rain streaks are one pixel wide) whose embedding is
-   joined to the standardized cues, trained jointly with the flow (one-cycle schedule);
+   (``components.posterior.settings``, temperature fitted on val; compiled only on a CPU) and *hybrids*
+   (``hybrid-<size>[-e<epochs>][-f]``): a residual CNN on the full 128×128 image (no 2×2 reduction: rain streaks are
+   one pixel wide) whose embedding is joined to the standardized cues, trained jointly with the flow (one-cycle
+   schedule; ``-f``: the CNN sees each training image mirrored with probability 1/2);
 4. scores each on the whole test split exactly like ``bench_levers.py`` (``score``): test NLL, information gain,
    calibration error with its band, per-parameter day errors and night coverage.
 
@@ -256,7 +257,8 @@ def main(argv: list[str] | None = None) -> None:
     for name, (kind, size, epochs, flip) in zip(a.models, models, strict=True):
         if kind == "cues":
             tc = training_config(params.train, size=size, trainable=False, seed=a.seed)
-            tc = dataclasses.replace(tc, compile=False)
+            if a.device != "cpu":  # the pipeline's compile rule is for its CPU (inductor's C++ kernels)
+                tc = dataclasses.replace(tc, compile=False)
             model = NPE(None, cues["train"].shape[1], params.box, flow_config(params.train, size=size), seed=a.seed)
             model.to(a.device)
             t1 = time.perf_counter()

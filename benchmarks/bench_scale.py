@@ -30,6 +30,7 @@ import multiprocessing as mp
 import re
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -53,12 +54,12 @@ from components.simulate.procedural import ProceduralSimulator  # noqa: E402
 _SIM: ProceduralSimulator | None = None
 
 
-def _render_rows(job: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """Worker: images ``(k, H, W, 3)`` uint8 of weather rows ``(k, 13)`` in scenes ``(k,)``."""
+def _render_rows(job: tuple[int, int, np.ndarray, np.ndarray]) -> np.ndarray:
+    """Worker: images ``(k, H, W, 3)`` uint8 of weather rows ``(k, 13)`` in scenes ``(k,)``; job (H, W, rows, scenes)."""
     global _SIM
-    if _SIM is None:
-        _SIM = ProceduralSimulator(128, 128)
-    rows, seeds = job
+    height, width, rows, seeds = job
+    if _SIM is None or (_SIM.height, _SIM.width) != (height, width):
+        _SIM = ProceduralSimulator(height, width)
     return np.stack(
         [
             _SIM.render({n: float(v) for n, v in zip(weather.ALL_NAMES, r, strict=True)}, int(s))
@@ -68,7 +69,8 @@ def _render_rows(job: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
 
 
 def render_split(params, name: str, size: int, workers: int) -> tuple[np.ndarray, np.ndarray]:
-    """The first ``size`` images ``(size, 128, 128, 3)`` uint8 and θ ``(size, 6)`` of split ``name``'s plan."""
+    """The first ``size`` images ``(size, H, W, 3)`` uint8 and θ ``(size, 6)`` of split ``name``'s plan (the
+    simulator's size of ``params``)."""
     sim = ProceduralSimulator(params.simulator.height, params.simulator.width)
     plan = dataset.plan_split(
         name,
@@ -81,7 +83,10 @@ def render_split(params, name: str, size: int, workers: int) -> tuple[np.ndarray
         resolution=(sim.height, sim.width),
     )
     chunk = 40 * params.data.images_per_scene  # whole scenes per job: the workers' scene cache is hit
-    jobs = [(plan.weather[i : i + chunk], plan.scene_seed[i : i + chunk]) for i in range(0, size, chunk)]
+    jobs = [
+        (sim.height, sim.width, plan.weather[i : i + chunk], plan.scene_seed[i : i + chunk])
+        for i in range(0, size, chunk)
+    ]
     with mp.get_context("fork").Pool(workers) as pool:
         images = np.concatenate(list(pool.imap(_render_rows, jobs, chunksize=1)))
     return images, plan.weather[:, : len(weather.PREDICTED)].astype(np.float32)
@@ -100,7 +105,8 @@ def cues_of(images: np.ndarray, device: str, batch: int = 2048) -> torch.Tensor:
 
 class FullResolutionCNN(nn.Module):
     """Residual CNN on 128×128 sRGB images (+ a row channel) → ``(n, dim)``: a stem at full resolution (one-pixel rain
-    streaks survive), five stride-2 stages (64…4 px) of two residual blocks, global mean and max pooling."""
+    streaks survive), five stages (64…4 px) of a stride-2 convolution and one residual block, global mean and max
+    pooling."""
 
     def __init__(self, dim: int = 128, widths: tuple[int, ...] = (32, 48, 64, 96, 128, 192)) -> None:
         super().__init__()
@@ -135,8 +141,9 @@ class FullResolutionCNN(nn.Module):
 
 def train_hybrid(
     params, images, cues, theta, val, epochs: int, seed: int, device: str, flip: bool = False
-) -> tuple[NPE, nn.Module, dict]:
-    """Train the hybrid (CNN embedding ⊕ standardized cues → flow) jointly; returns (flow, cnn, info). ``flip``: the
+) -> tuple[NPE, Callable[[np.ndarray, torch.Tensor], torch.Tensor], dict]:
+    """Train the hybrid (CNN embedding ⊕ standardized cues → flow) jointly; returns the flow, the map (images, cues) ↦
+    its contexts (the trained CNN, in eval mode) and the training's figures. ``flip``: the
     CNN sees each training image mirrored left-right with probability 1/2 (the weather is mirror-invariant)."""
     torch.manual_seed(seed)
     mean, std = cues.mean(0), cues.std(0).clamp_min(1e-6)
@@ -145,7 +152,7 @@ def train_hybrid(
     flow = NPE(None, cnn.head.out_features + cues.shape[1], params.box, fc, seed=seed).to(device)
     parameters = [*cnn.parameters(), *flow.parameters()]
     opt = torch.optim.AdamW(parameters, lr=params.train.lr, weight_decay=params.train.weight_decay)
-    batch = 256
+    batch = params.train.batch_size
     steps = epochs * (len(images) // batch)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, params.train.lr, total_steps=steps, pct_start=0.05)
     gpu_images = torch.from_numpy(images).to(device)

@@ -132,8 +132,8 @@ def input_noise_for(train_section: TrainConfig, size: int, *, trainable: bool, e
 def compile_for(train_section: TrainConfig, size: int, *, trainable: bool) -> bool:
     """Whether a model of ``size`` training images compiles its training loss (``TrainingConfig.compile``): when it
     takes at least ``train.compile_min_steps`` optimizer steps (:func:`epochs_for` × ⌈size / batch_size⌉). The
-    compilation costs ~50 s once per model shape (later processes reuse inductor's disk cache) and saves ~10 ms of
-    the ~25 ms a 256-sample step of the cues flow takes on one thread: it pays from a few thousand steps
+    compilation costs 35–50 s once per model shape (later processes reuse inductor's disk cache) and takes a
+    256-sample step of the cues flow from 18.6 to 11.0 ms on one thread: it pays from a few thousand steps
     (``benchmarks/bench_compile.py``, BENCHMARKS.md "Compiling the training step")."""
     t = train_section
     if t.compile_min_steps is None:

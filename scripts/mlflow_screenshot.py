@@ -287,6 +287,33 @@ def _page(browser: str | None, size: tuple[int, int]):
             chromium.close()
 
 
+# the expander of a parent run's Run Name cell shows a plus (folded: its icon's first path draws a vertical stroke,
+# an SVG "V" command) or a minus (unfolded: no "V")
+_FOLDED = "b => /V/.test(b.querySelector('svg path')?.getAttribute('d') ?? '')"
+_ROW_COUNT = "() => new Set([...document.querySelectorAll('.ag-row')].map(r => r.getAttribute('row-index'))).size"
+
+
+def _expand(page, row, timeout_s: float = TIMEOUT_MS / 1000) -> None:
+    """Unfold a parent run's ``row`` (its expander: the one button of its Run Name cell) until its child runs show.
+    While the runs still load, the table may re-render and fold it again (once seen in CI: the click landed, the
+    children never showed): the expander's state is read back, and it is clicked again until the children are rows."""
+    button = row.locator(f'[col-id="{RUN_NAME}"]').get_by_role("button").first
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            button.wait_for(state="visible", timeout=5_000)
+            if button.evaluate(_FOLDED):
+                before = page.evaluate(_ROW_COUNT)
+                _click(page, button)
+                page.wait_for_function(f"n => ({_ROW_COUNT})() > n", arg=before, timeout=5_000)
+            if not button.evaluate(_FOLDED):
+                return
+        except Exception as e:  # playwright's TimeoutError: not rendered yet, or the children did not show
+            if time.monotonic() > deadline:
+                raise UIError(f"could not unfold the run {row} within {timeout_s:.0f} s ({e})", page) from None
+        page.wait_for_timeout(500)
+
+
 def _close_assistant(page, timeout_ms: int = 3_000) -> None:
     """The MLflow Assistant panel opens on a first visit and covers the right third of the page: close it."""
     _click_if_shown(page.locator('[data-component-id="mlflow.assistant.chat_panel.close"]'), timeout_ms)
@@ -323,13 +350,14 @@ def compare_models(
         _close_assistant(page)
         # 4. the newest grid run (runs are sorted newest first): its expander (the one button of its Run Name cell)
         grid_row = page.locator(".ag-row").filter(has=page.get_by_role("link", name=re.compile(r"^grid-"))).first
-        _click(page, grid_row.locator(f'[col-id="{RUN_NAME}"]').get_by_role("button"))
+        _expand(page, grid_row)
         # 5. the columns: without Dataset and Source, with each headline metric and the role tag
         for name in hide:
             _set_column(page, name, shown=False, timeout_s=5)
         missing = [name for name in [*metrics, *tags] if not _set_column(page, name)]
         # 6. whole names and values, then the picture (the assistant panel again, should it have opened late)
         _close_assistant(page, timeout_ms=0)
+        _expand(page, grid_row)  # (a no-op unless a re-render folded it again)
         for column in [RUN_NAME, *map(Look.metric, metrics), *map(Look.tag, tags)]:
             _widen(page, column)
         _screenshot(page, out)

@@ -20,6 +20,8 @@ Levers (``--setting NAME``, several allowed):
 * ``…-n<σ>``: Gaussian noise of standard deviation σ added to the standardized inputs while training
   (``TrainingConfig.input_noise``, a regularizer; off at evaluation); without it no noise, whatever ``params.yaml``
   says (``train.input_noise``);
+* ``…-m``: every training input replaced by its mirror image's with probability ½ each batch
+  (``TrainingConfig.mirror``: the backbones' feature permutation, no new rendering);
 * ``…-t``: the base temperature τ fitted on the validation split after training (``train.temperature``,
   :mod:`components.posterior.temperature`); without it τ = 1, whatever ``params.yaml`` says.
 
@@ -53,12 +55,14 @@ from components.core.config import load_params  # noqa: E402
 from components.core.weather import PREDICTED  # noqa: E402
 from components.evaluate import diagnostics  # noqa: E402
 from components.features import cache  # noqa: E402
+from components.features.backbones.cues import MIRROR  # noqa: E402
+from components.features.backbones.tiny import TinyImagesBackbone  # noqa: E402
 from components.posterior import NPE, train  # noqa: E402
 from components.posterior.settings import flow_config, training_config  # noqa: E402
 from components.posterior.temperature import calibrate  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 
-_SETTING = re.compile(r"^cues-(v1|v2|v3)(\+tiny)?-(\d+)(?:-ens(\d+))?(?:-e(\d+))?(?:-n([0-9.]+))?(-t)?$")
+_SETTING = re.compile(r"^cues-(v1|v2|v3)(\+tiny)?-(\d+)(?:-ens(\d+))?(?:-e(\d+))?(?:-n([0-9.]+))?(-m)?(-t)?$")
 #: the leading columns of today's cues cache that each cue version computed
 COLUMNS = {"v1": 80, "v2": 241, "v3": None}
 
@@ -68,8 +72,10 @@ def parse_setting(name: str) -> dict:
     grammar otherwise."""
     m = _SETTING.match(name)
     if not m:
-        raise ValueError(f"setting {name!r}: expected cues-(v1|v2|v3)[+tiny]-<size>[-ens<k>][-e<epochs>][-n<σ>][-t]")
-    v, tiny, size, ens, ep, noise, temp = m.groups()
+        raise ValueError(
+            f"setting {name!r}: expected cues-(v1|v2|v3)[+tiny]-<size>[-ens<k>][-e<epochs>][-n<σ>][-m][-t]"
+        )
+    v, tiny, size, ens, ep, noise, mirror, temp = m.groups()
     return {
         "version": v,
         "tiny": bool(tiny),
@@ -77,6 +83,7 @@ def parse_setting(name: str) -> dict:
         "ensemble": int(ens or 1),
         "epochs": int(ep) if ep else None,
         "noise": float(noise) if noise else 0.0,
+        "mirror": bool(mirror),
         "temperature": bool(temp),
     }
 
@@ -97,7 +104,9 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
     theta = {k: splits[k].theta[: len(v)].astype(np.float32) for k, v in x.items()}
     fc = flow_config(params.train, size=s["size"], ensemble=s["ensemble"])
     tc = dataclasses.replace(
-        training_config(params.train, size=s["size"], trainable=False, seed=seed), input_noise=s["noise"]
+        training_config(params.train, size=s["size"], trainable=False, seed=seed),
+        input_noise=s["noise"],
+        mirror=s["mirror"],
     )
     if s["epochs"]:
         tc = dataclasses.replace(tc, epochs=s["epochs"])
@@ -108,6 +117,7 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
         (torch.from_numpy(x["train"]), torch.from_numpy(theta["train"])),
         (torch.from_numpy(x["val"]), torch.from_numpy(theta["val"])),
         tc,
+        mirror=mirror_map(s["version"], s["tiny"]) if s["mirror"] else None,
     )
     model.eval()
     tempered = calibrate(model, torch.from_numpy(x["val"]), torch.from_numpy(theta["val"])) if s["temperature"] else {}
@@ -122,6 +132,19 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
         **tempered,
         **score(model, torch.from_numpy(x["test"]), torch.from_numpy(theta["test"]), params.box, samples, seed),
     }
+
+
+def mirror_map(version: str, tiny: bool):
+    """The inputs of the mirrored images as a map of a batch of inputs: the cues' permutation
+    (:data:`components.features.backbones.cues.MIRROR`) on the version's columns, joined by the ``tiny`` one's."""
+    cols = COLUMNS[version] or len(MIRROR)
+    index = list(MIRROR[:cols])
+    if max(index) >= cols:
+        raise ValueError(f"cues-{version}: the mirror permutation leaves its {cols} columns")
+    if tiny:
+        index += [cols + i for i in TinyImagesBackbone().mirror_index()]
+    perm = torch.tensor(index)
+    return lambda x: x[:, perm]
 
 
 def score(model: NPE, xt: torch.Tensor, tt: torch.Tensor, box, samples: int, seed: int) -> dict:

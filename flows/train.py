@@ -156,6 +156,7 @@ def train_model(
             checkpoint=checkpoint,
             callback=_reporting(run.log_epoch, stage.logger, model_id, cfg.epochs),
             progress=False,  # parallel workers: one log line per tenth of the epochs instead of interleaved bars
+            mirror=backbone.mirror_inputs if cfg.mirror else None,
         )
         model.eval()
         # post-hoc calibration on the validation split (deterministic: resuming re-fits the same τ)

@@ -162,6 +162,9 @@ def test_cues_mirror_symmetry(textures: np.ndarray) -> None:
             slash, backslash = FEATURE_NAMES.index(name), FEATURE_NAMES.index(name.replace("slash", "backslash"))
             perm[slash], perm[backslash] = backslash, slash
     np.testing.assert_allclose(g, f[:, perm], rtol=1e-3, atol=2e-3)
+    # the backbone's own permutation (derived from the feature names) is this one, and mirrors its cached features
+    assert b.mirror_index() == tuple(perm.tolist())
+    np.testing.assert_allclose(b.mirror_inputs(torch.from_numpy(f)).numpy(), g, rtol=1e-3, atol=2e-3)
 
 
 def test_cues_see_synthetic_haze(textures: np.ndarray) -> None:
@@ -239,6 +242,28 @@ def test_tiny_mirror_reverses_cell_columns(textures: np.ndarray) -> None:
     f = b.extract(textures).reshape(-1, 4, 8, 8)
     g = b.extract(np.ascontiguousarray(textures[:, :, ::-1])).reshape(-1, 4, 8, 8)
     np.testing.assert_allclose(g, f[..., ::-1], rtol=1e-4, atol=1e-4)
+    mirrored = b.mirror_inputs(torch.from_numpy(f.reshape(len(f), -1))).numpy()
+    np.testing.assert_allclose(mirrored, g.reshape(len(g), -1), rtol=1e-4, atol=1e-4)
+
+
+def test_mirror_inputs_flip_a_trainable_backbones_images_and_refuse_what_cannot_mirror(textures: np.ndarray) -> None:
+    cnn = get_backbone("cnn")
+    with warnings.catch_warnings():
+        # the announced 128 → 64 conversion (area interpolation: it commutes with a flip)
+        warnings.simplefilter("ignore")
+        x, mirrored = cnn.preprocess(textures), cnn.preprocess(textures[:, :, ::-1].copy())
+    np.testing.assert_array_equal(cnn.mirror_inputs(x).numpy(), mirrored.numpy())
+    with pytest.raises(ValueError, match="expects model inputs"):
+        cnn.mirror_inputs(x.flatten(1))
+    with pytest.raises(ValueError, match=r"expects features \(n, 273\)"):
+        get_backbone("cues").mirror_inputs(torch.zeros(2, 7))
+
+    class Opaque(Backbone):  # frozen features with no known symmetry (as a pretrained network's)
+        name = "opaque"
+        dim = 3
+
+    with pytest.raises(ValueError, match="'opaque'.*train.mirror: false"):
+        Opaque().mirror_inputs(torch.zeros(2, 3))
 
 
 def test_tiny_respond_to_rendered_weather(renders: dict[str, np.ndarray]) -> None:

@@ -14,9 +14,10 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_levers import parse_setting  # noqa: E402
+from benchmarks.bench_levers import mirror_map, parse_setting  # noqa: E402
 from benchmarks.bench_scale import FullResolutionCNN, _parse, render_split  # noqa: E402
 from components.core.config import load_params  # noqa: E402
+from components.features.backbones import get_backbone  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 from components.simulate.procedural import ProceduralSimulator  # noqa: E402
 
@@ -30,12 +31,31 @@ def test_levers_settings_grammar() -> None:
         "ensemble": 2,
         "epochs": 60,
         "noise": 0.094,
+        "mirror": False,
         "temperature": True,
     }
     assert parse_setting("cues-v1-5000")["tiny"] is False
-    for bad in ("cues-v4-5000", "cues-v3-tiny-5000", "tiny-v3-5000", "cues-v3-5000-x"):
+    assert parse_setting("cues-v3-20000-n0.106-m-t")["mirror"] is True
+    for bad in ("cues-v4-5000", "cues-v3-tiny-5000", "tiny-v3-5000", "cues-v3-5000-x", "cues-v3-5000-t-m"):
         with pytest.raises(ValueError, match="expected cues-"):
             parse_setting(bad)
+
+
+def test_levers_mirror_map_is_the_features_of_the_mirrored_images() -> None:
+    """``-m`` on cues joined by the tiny thumbnail: the composed permutation maps the joined features of rendered
+    images to those of their mirror images (to float rounding)."""
+    sim = ProceduralSimulator(128, 128)
+    w = {"cloudiness": 30.0, "fog_density": 20.0, "precipitation": 60.0, "sun_altitude_angle": 25.0}
+    w |= {"wind_intensity": 70.0, "precipitation_deposits": 40.0, "sun_azimuth_angle": 60.0}
+    images = np.stack([sim.render(w, seed) for seed in (1, 2, 3)])
+    mirrored = np.ascontiguousarray(images[:, :, ::-1])
+
+    def joined(x: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.concatenate([get_backbone(b).extract(x) for b in ("cues", "tiny")], axis=1))
+
+    np.testing.assert_allclose(mirror_map("v3", True)(joined(images)), joined(mirrored), rtol=1e-3, atol=2e-3)
+    v1 = torch.arange(80.0)[None]  # the version-1 columns mirror among themselves (edge orientations)
+    assert sorted(mirror_map("v1", False)(v1)[0].tolist()) == v1[0].tolist()
 
 
 def test_scale_models_grammar() -> None:

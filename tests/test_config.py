@@ -175,6 +175,7 @@ MISSING = [
     "task3.smoothing",
     "train.input_noise_max_size",
     "train.compile_min_steps",
+    "train.mirror",
     "train.ensemble_min_size",
     "evaluate.samples",
     "simulator.carla.fov",

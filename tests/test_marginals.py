@@ -157,3 +157,35 @@ def test_bad_inputs_are_named():
         marginals.marginal_scores(np.full((3, 10, 2), 150.0), np.zeros((3, 2)), BOX2)
     with pytest.raises(ValueError, match="bandwidth must be positive"):
         marginals.reflected_kde_log_density(np.ones((3, 10, 2)), np.ones((3, 2)), BOX2, bandwidth=np.zeros((3, 2)))
+
+
+@pytest.mark.parametrize("n", [30, 200])
+def test_the_median_interval_holds_the_median_as_often_as_promised(n: int) -> None:
+    """Distribution-free: on exponential samples (median log 2) the order-statistic interval holds the true median with
+    its exact binomial probability (≥ 95 %, 95.7 % at n = 30, 95.4 % at 200), measured on 4000 samples (4 binomial
+    standard deviations)."""
+    rng = seeding.rng(5, "test", "marginals", "median", n)
+    samples = rng.exponential(size=(4000, n))
+    inside = [lo <= math.log(2) <= hi for lo, hi in map(marginals.median_interval, samples)]
+    low_rank = int(np.searchsorted(np.sort(samples[0]), marginals.median_interval(samples[0])[0])) + 1
+    exact = 1 - 2 * stats.binom.cdf(low_rank - 1, n, 0.5)
+    assert exact >= 0.95
+    assert abs(np.mean(inside) - exact) < _band(exact, 4000)
+
+
+def test_coverage_intervals_hold_the_coverage_and_bracket_the_share() -> None:
+    """A calibrated posterior's 68 % coverage lies inside its Clopper–Pearson interval, which brackets the share and
+    narrows as 1/√n; a median error's interval brackets the median."""
+    rng = seeding.rng(6, "test", "marginals", "intervals")
+    mu = rng.uniform(20, 80, size=(N_IMAGES, 2))
+    draws = np.clip(mu[:, None, :] + 5 * rng.normal(size=(N_IMAGES, 400, 2)), 0, 100)
+    truth = np.clip(mu + 5 * rng.normal(size=(N_IMAGES, 2)), 0, 100)
+    full = marginals.parameter_report(draws, truth, BOX2)["all"]["a"]
+    half = marginals.parameter_report(draws[:500], truth[:500], BOX2)["all"]["a"]
+    for fig in (full, half):
+        assert fig["coverage68_low"] < fig["coverage68"] < fig["coverage68_high"]
+        assert fig["coverage68_low"] < 0.6827 < fig["coverage68_high"]
+        assert fig["median_abs_error_low"] < fig["median_abs_error"] < fig["median_abs_error_high"]
+    width = {k: f["coverage68_high"] - f["coverage68_low"] for k, f in (("full", full), ("half", half))}
+    assert width["half"] / width["full"] == pytest.approx(2.0, rel=0.1)  # √(2000 / 500)
+    assert math.isnan(marginals.coverage_interval(0, 0)[0]) and math.isnan(marginals.median_interval(np.ones(5))[0])

@@ -73,6 +73,7 @@ def _metrics(error: float, nll: float) -> dict:
         "coverage_auc_gap": -0.01,
         "pi_median": 0.48,
         "test_nll": nll,
+        "test_nll_se": 0.05,
         "info_gain_nats": 3.2,
         "images": 200,
         "samples": 400,
@@ -87,7 +88,10 @@ def test_one_flat_row_per_model_with_the_same_keys_and_the_results_table():
     }
     keys = [list(r) for r in rows.values()]
     assert keys[0] == keys[1] and keys[0][: len(report.HEADLINE)] == list(report.HEADLINE)
-    assert {"err_day_cloud", "err_night_sun", "err_night_deposit"} <= set(keys[0]) and len(keys[0]) == 10 + 12
+    assert {"err_day_cloud", "err_night_sun", "err_night_deposit"} <= set(keys[0]) and len(keys[0]) == 11 + 12 + 7
+    night = _report(2)["night"]
+    assert rows["cnn-3000"]["night_images"] == night["fog_density"]["images"]
+    assert rows["cnn-3000"]["cov68_night_fog"] == night["fog_density"]["coverage68"]
     assert rows["cnn-3000"]["err_day_fog"] == _report(2)["day"]["fog_density"]["median_abs_error"]
     with pytest.raises(KeyError, match="lack calibration_band"):
         report.model_row({k: v for k, v in _metrics(0.02, 23.0).items() if k != "calibration_band"}, _report(1))
@@ -95,8 +99,13 @@ def test_one_flat_row_per_model_with_the_same_keys_and_the_results_table():
     table = report.results_table(rows, champion="cues-1000").splitlines()
     assert len(table) == 2 + 2 and table[0].startswith("| model | calibration error | band (95 %) | within band")
     assert table[2].startswith("| **cues-1000** (champion) | 0.020 | 0.030 | yes | 23.00 |")
-    assert table[3].startswith("| cnn-3000 | 0.080 | 0.030 | no | 21.50 | 3.20 | 0.48 | −0.010 |")
+    assert table[3].startswith("| cnn-3000 | 0.080 | 0.030 | no | 21.50 | 3.20 ± 0.05 | 0.48 | −0.010 |")
     assert all(line.count("|") == table[0].count("|") for line in table)
+    # the lowest night coverage, its parameter and its interval (the report's own Clopper–Pearson bounds)
+    lowest = min(weather.PREDICTED, key=lambda p: night[p]["coverage68"])
+    fig, short = night[lowest], weather.SHORT_NAMES[weather.PREDICTED.index(lowest)]
+    cell = f"{short} {100 * fig['coverage68']:.1f} [{100 * fig['coverage68_low']:.1f}, {100 * fig['coverage68_high']:.1f}] |"
+    assert table[3].endswith(cell), (table[3], cell)
 
 
 def test_parameter_heatmaps_and_coverage_band_are_pngs_with_content(tmp_path):

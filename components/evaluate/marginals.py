@@ -31,7 +31,10 @@ to the truth's position. For a Gaussian marginal of sd σ, the smoothing by h �
 expected log-density at the truth by ≈ −6·10⁻⁴ nats (second order in h/σ); at a face where the density's slope is not
 zero the reflection leaves an O(h) bias.
 
-Every figure is reported for all images and split by the truth into day (sun_altitude_angle > 0°) and night.
+Every figure is reported for all images and split by the truth into day (sun_altitude_angle > 0°) and night; each
+coverage with its exact binomial (Clopper–Pearson) interval and each median error with its distribution-free interval
+from order statistics, both at 95 % (``…_low``, ``…_high``): a reader sees whether 62 % against a target of 63 % is a
+miss or noise.
 
 Used by the ``evaluate`` stage.
 """
@@ -42,6 +45,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.stats
 
 from components.core.weather import Box
 
@@ -50,11 +54,14 @@ __all__ = [
     "SUBSETS",
     "FIGURES",
     "SUN",
+    "CONFIDENCE",
     "MarginalScores",
     "silverman_bandwidth",
     "reflected_kde_log_density",
     "marginal_scores",
     "subset_masks",
+    "coverage_interval",
+    "median_interval",
     "summarize_scores",
     "parameter_report",
     "flat_errors",
@@ -70,10 +77,18 @@ FIGURES: tuple[str, ...] = (
     "width68",
     "width95",
     "coverage68",
+    "coverage68_low",
+    "coverage68_high",
     "coverage95",
+    "coverage95_low",
+    "coverage95_high",
     "median_abs_error",
+    "median_abs_error_low",
+    "median_abs_error_high",
     "info_gain_nats",
 )
+#: The confidence of the intervals reported beside a coverage and a median error (``…_low``, ``…_high``).
+CONFIDENCE = 0.95
 #: The parameter whose truth splits day (> 0°) from night.
 SUN = "sun_altitude_angle"
 #: The smallest kernel bandwidth, as a share of the prior range (draws that coincide).
@@ -232,21 +247,51 @@ def subset_masks(truth: object, box: Box) -> dict[str, np.ndarray]:
     return masks
 
 
+def coverage_interval(hits: int, n: int, confidence: float = CONFIDENCE) -> tuple[float, float]:
+    """The Clopper–Pearson (exact binomial) interval of a coverage: ``hits`` truths inside their intervals out of ``n``
+    images; it holds the true coverage with probability ≥ ``confidence``. NaNs for n = 0."""
+    if n == 0:
+        return float("nan"), float("nan")
+    ci = scipy.stats.binomtest(int(hits), int(n)).proportion_ci(confidence_level=confidence, method="exact")
+    return float(ci.low), float(ci.high)
+
+
+def median_interval(values: np.ndarray, confidence: float = CONFIDENCE) -> tuple[float, float]:
+    """The distribution-free interval of a median from order statistics: [v₍ₗ₎, v₍ₙ₋ₗ₊₁₎] with l the largest rank such
+    that P(B ≤ l − 1) ≤ (1 − confidence)/2 for B ~ Binomial(n, ½) (the count of values below the true median); it holds
+    the median with probability ≥ ``confidence`` whatever the distribution. NaNs where n is too small for one."""
+    v = np.sort(np.asarray(values, dtype=np.float64))
+    n = v.size
+    tail = (1.0 - confidence) / 2
+    low_rank = int(scipy.stats.binom.ppf(tail, n, 0.5)) if n else 0  # smallest k with P(B ≤ k) ≥ tail
+    if n and scipy.stats.binom.cdf(low_rank, n, 0.5) <= tail:
+        low_rank += 1
+    if low_rank < 1:
+        return float("nan"), float("nan")
+    return float(v[low_rank - 1]), float(v[n - low_rank])
+
+
 def summarize_scores(scores: MarginalScores, mask: np.ndarray, names: tuple[str, ...]) -> dict[str, dict[str, float]]:
     """Per parameter name, the :data:`FIGURES` over the images of ``mask (N,)``: their number, the mean interval widths
-    (shares of the prior range), the coverages, the median |median − truth| (physical units) and the mean marginal
-    information gain (nats). NaN for an empty subset."""
+    (shares of the prior range), the coverages with their Clopper–Pearson intervals (:func:`coverage_interval`), the
+    median |median − truth| (physical units) with its distribution-free interval (:func:`median_interval`) and the mean
+    marginal information gain (nats). NaN for an empty subset."""
     k = int(np.count_nonzero(mask))
+    nan = float("nan")
     out: dict[str, dict[str, float]] = {}
     for j, name in enumerate(names):
         fig: dict[str, float] = {"images": k}
         for i, mass in enumerate(scores.masses):
             tag = f"{round(100 * mass)}"
-            fig[f"width{tag}"] = float(scores.width[i, mask, j].mean()) if k else float("nan")
-            fig[f"coverage{tag}"] = float(scores.covered[i, mask, j].mean()) if k else float("nan")
-        fig["median_abs_error"] = float(np.median(scores.abs_error[mask, j])) if k else float("nan")
-        fig["info_gain_nats"] = float(scores.log_ratio[mask, j].mean()) if k else float("nan")
-        out[name] = fig
+            hits = int(np.count_nonzero(scores.covered[i, mask, j]))
+            fig[f"width{tag}"] = float(scores.width[i, mask, j].mean()) if k else nan
+            fig[f"coverage{tag}"] = hits / k if k else nan
+            fig[f"coverage{tag}_low"], fig[f"coverage{tag}_high"] = coverage_interval(hits, k)
+        errors = scores.abs_error[mask, j]
+        fig["median_abs_error"] = float(np.median(errors)) if k else nan
+        fig["median_abs_error_low"], fig["median_abs_error_high"] = median_interval(errors)
+        fig["info_gain_nats"] = float(scores.log_ratio[mask, j].mean()) if k else nan
+        out[name] = {key: fig[key] for key in FIGURES}
     return out
 
 

@@ -15,7 +15,7 @@ import math
 from collections.abc import Mapping
 
 from components.core.weather import PREDICTED, SHORT_NAMES
-from components.evaluate.marginals import flat_errors
+from components.evaluate.marginals import coverage_interval, flat_errors
 
 __all__ = ["HEADLINE", "model_row", "results_table"]
 
@@ -25,6 +25,7 @@ HEADLINE: tuple[str, ...] = (
     "calibration_band",
     "within_band",
     "test_nll",
+    "test_nll_se",
     "info_gain_nats",
     "pi_median",
     "coverage_auc_gap",
@@ -35,14 +36,46 @@ HEADLINE: tuple[str, ...] = (
 
 
 def model_row(metrics: Mapping[str, object], parameters: Mapping[str, Mapping[str, Mapping[str, float]]]) -> dict:
-    """The flat row of one model: its :data:`HEADLINE` ``metrics`` then ``err_<day|night>_<short name>`` from its
-    per-parameter report (``subset → parameter → figures``). ``KeyError`` naming a missing headline metric."""
+    """The flat row of one model: its :data:`HEADLINE` ``metrics``, ``err_<day|night>_<short name>`` from its
+    per-parameter report (``subset → parameter → figures``), then the night images' count (``night_images``) and each
+    parameter's central-68 % coverage on them (``cov68_night_<short name>``: where the image cannot tell, honest
+    intervals cover ~68 %). ``KeyError`` naming a missing headline metric."""
     missing = [k for k in HEADLINE if k not in metrics]
     if missing:
         raise KeyError(f"the Task I metrics lack {', '.join(missing)}")
     errors = flat_errors(parameters, dict(zip(PREDICTED, SHORT_NAMES, strict=True)))
     expected = [f"err_{s}_{short}" for s in ("day", "night") for short in SHORT_NAMES]
-    return {k: metrics[k] for k in HEADLINE} | {k: errors.get(k, math.nan) for k in expected}
+    night = parameters.get("night", {})
+    coverage = {
+        f"cov68_night_{short}": night.get(name, {}).get("coverage68", math.nan)
+        for name, short in zip(PREDICTED, SHORT_NAMES, strict=True)
+    }
+    night_images = night.get(PREDICTED[0], {}).get("images", 0)
+    return (
+        {k: metrics[k] for k in HEADLINE}
+        | {k: errors.get(k, math.nan) for k in expected}
+        | {"night_images": night_images}
+        | coverage
+    )
+
+
+def _info_gain(row: Mapping[str, object]) -> str:
+    """The cell ``<information gain> ± <its standard error over the test images>``."""
+    gain, se = _cell(row.get("info_gain_nats"), 2), _cell(row.get("test_nll_se"), 2)
+    return gain if se == "—" else f"{gain} ± {se}"
+
+
+def _lowest_night_coverage(row: Mapping[str, object]) -> str:
+    """The cell ``<short name> <coverage %> [<95 % interval>]`` of the parameter whose night coverage is lowest
+    (Clopper–Pearson from the count of night images), or ``—``."""
+    n = row.get("night_images")
+    found = [(float(row[k]), k.removeprefix("cov68_night_")) for k in row if k.startswith("cov68_night_")]
+    found = [(c, short) for c, short in found if math.isfinite(c)]
+    if not found or not isinstance(n, (int, float)) or n < 1:
+        return "—"
+    cov, short = min(found)
+    low, high = coverage_interval(round(cov * n), int(n))
+    return f"{short} {100 * cov:.1f} [{100 * low:.1f}, {100 * high:.1f}]"
 
 
 def _cell(value: object, digits: int) -> str:
@@ -57,25 +90,29 @@ def results_table(
     rows: Mapping[str, Mapping[str, object]], champion: str | None = None, band_level: float = 0.95
 ) -> str:
     """A markdown table, one line per model of ``rows`` (model id → :func:`model_row`): calibration error and its band
-    (at ``band_level``), within band, test NLL, information gain, π median, coverage gap, and the day / night median
-    errors of sun altitude (°), fog and precipitation (%); the ``champion``'s line in bold. Ends with a newline."""
+    (at ``band_level``), within band, test NLL, information gain with its standard error, π median, coverage gap, and the day / night median
+    errors of sun altitude (°), fog and precipitation (%), and the lowest night coverage of a central 68 % interval
+    with its parameter and exact binomial interval; the ``champion``'s line in bold. Ends with a newline."""
     columns = [
         ("calibration error", "calibration_error", 3),
         (f"band ({100 * band_level:g} %)", "calibration_band", 3),
         ("within band", "within_band", 0),
         ("test NLL (nats)", "test_nll", 2),
-        ("info gain (nats)", "info_gain_nats", 2),
+        ("info gain (nats) ± s.e.", _info_gain, 2),
         ("π median", "pi_median", 2),
         ("coverage gap", "coverage_auc_gap", 3),
         ("sun err day / night (°)", ("err_day_sun", "err_night_sun"), 1),
         ("fog err day / night (%)", ("err_day_fog", "err_night_fog"), 1),
         ("rain err day / night (%)", ("err_day_rain", "err_night_rain"), 1),
+        ("night 68 % coverage, lowest (%) [95 % interval]", _lowest_night_coverage, 1),
     ]
     lines = ["| model | " + " | ".join(c[0] for c in columns) + " |", "|---" * (len(columns) + 1) + "|"]
     for model, row in rows.items():
         cells = []
         for _, key, digits in columns:
-            if isinstance(key, tuple):
+            if callable(key):
+                cells.append(key(row))
+            elif isinstance(key, tuple):
                 cells.append(" / ".join(_cell(row.get(k), digits) for k in key))
             else:
                 cells.append(_cell(row.get(key), digits))

@@ -116,8 +116,8 @@ def task1_metrics(
 
     Returns ``(metrics, coverage, pi)``: the metrics (calibration error, the ``band`` of a perfectly calibrated model
     on N images (:func:`calibration_band`) and whether the error lies within it, signed coverage area — < 0
-    overconfident, > 0 conservative —, median superiority π, test NLL, information gain over the uniform prior of
-    log-volume ``prior_log_volume``, in nats), the expected coverage at :data:`LEVELS`, and π per image.
+    overconfident, > 0 conservative —, median superiority π, test NLL and its standard error over the images,
+    information gain over the uniform prior of log-volume ``prior_log_volume``, in nats), the expected coverage at :data:`LEVELS`, and π per image.
     """
     cred = diagnostics.hpd_credibility(lp, lp_truth)
     coverage = diagnostics.expected_coverage(cred, LEVELS)
@@ -131,6 +131,9 @@ def task1_metrics(
         "coverage_auc_gap": float(np.trapezoid(coverage - LEVELS, LEVELS)),
         "pi_median": float(np.median(pi)),
         "test_nll": test_nll,
+        # the standard error of that mean over the N images (also the information gain's): is a gap between two
+        # models more than noise?
+        "test_nll_se": float(lp_truth.std(ddof=1) / np.sqrt(lp_truth.size)) if lp_truth.size > 1 else float("nan"),
         "info_gain_nats": -test_nll + prior_log_volume,
     }
     return metrics, coverage, pi

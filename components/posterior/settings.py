@@ -173,6 +173,7 @@ def training_config(
                 seed=seed,
                 balance=t.balance if balance is None else balance,
                 input_noise=input_noise_for(t, size, trainable=trainable, ensemble=ensemble),
+                mirror=t.mirror,
                 compile=compile_for(t, size, trainable=trainable),
             ),
         )

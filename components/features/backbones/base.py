@@ -10,6 +10,8 @@ the backbone. A backbone is a :class:`torch.nn.Module` with
   included, announced once per backbone instance with :func:`warnings.warn`);
 - :meth:`forward` — model input → features ``(n, dim)`` float32;
 - :meth:`extract` — images → features as a float32 numpy array, batched, under inference mode;
+- :meth:`mirror_inputs` — the posterior's inputs of the left-right mirrored images (training augmentation):
+  flipped model inputs for a trainable backbone, permuted features (:meth:`mirror_index`) for a frozen one;
 - :meth:`fingerprint` — a hash of name, code version, configuration and weights, stored next to
   cached features to detect stale caches.
 
@@ -120,6 +122,31 @@ class Backbone(nn.Module):
         finally:
             self.train(was_training)
         return out
+
+    # -- symmetry ------------------------------------------------------------------------------------
+    def mirror_index(self) -> tuple[int, ...] | None:
+        """The permutation of the features that a left-right mirror of the image makes: ``features(mirrored)[:, j] =
+        features(image)[:, index[j]]`` (to float rounding); None where mirroring does not permute them (a learned or
+        pretrained network's features). Frozen backbones with such a symmetry override it."""
+        return None
+
+    def mirror_inputs(self, inputs: torch.Tensor) -> torch.Tensor:
+        """The posterior's inputs of the left-right mirrored images (``TrainingConfig.mirror``): a trainable backbone's
+        model inputs ``(n, C, H, W)`` flipped along W, a frozen backbone's features ``(n, dim)`` permuted by
+        :meth:`mirror_index`. ``ValueError`` naming the backbone where neither applies."""
+        if self.trainable:
+            if inputs.ndim != 4:
+                raise ValueError(f"{self.name}: mirroring expects model inputs (n, C, H, W), got {tuple(inputs.shape)}")
+            return inputs.flip(-1)
+        index = self.mirror_index()
+        if index is None:
+            raise ValueError(
+                f"backbone {self.name!r}: its features do not permute under a left-right mirror of the image, so "
+                "train.mirror cannot be used with it (set train.mirror: false)"
+            )
+        if inputs.ndim != 2 or inputs.shape[1] != len(index):
+            raise ValueError(f"{self.name}: mirroring expects features (n, {len(index)}), got {tuple(inputs.shape)}")
+        return inputs[:, torch.as_tensor(index, device=inputs.device)]
 
     # -- identity ------------------------------------------------------------------------------------
     def fingerprint(self) -> str:

@@ -79,6 +79,7 @@ Used by every stage but ``generate``, and by the ``pidc`` CLI.
 from __future__ import annotations
 
 import math
+import re
 from typing import Any, ClassVar
 
 import torch
@@ -86,7 +87,7 @@ import torch.nn.functional as F
 
 from components.features.backbones.base import Backbone
 
-__all__ = ["CuesBackbone", "FEATURE_NAMES"]
+__all__ = ["CuesBackbone", "FEATURE_NAMES", "MIRROR"]
 
 
 _ROAD_Q = (5, 10, 25, 50, 75, 90, 95)
@@ -141,6 +142,26 @@ def _names() -> tuple[str, ...]:
 
 #: the name of every feature, in output order
 FEATURE_NAMES: tuple[str, ...] = _names()
+
+
+def _mirror_partner(name: str) -> str:
+    """The feature that ``name`` becomes when the image is mirrored left-right: grid column c ↔ 3 − c, left ↔ right
+    wall, edge-orientation bin k ↔ (8 − k) mod 8 (the slant changes sign), ╱ ↔ ╲ ridges; itself for every feature of
+    a region symmetric about the vertical midline (rows, bands, the road, the sky, whole-image statistics)."""
+    if m := re.fullmatch(r"(grid_log_\w+?)(\d)(\d)", name):
+        return f"{m[1]}{m[2]}{3 - int(m[3])}"
+    if m := re.fullmatch(r"(fine_edge_hist|edge_hist)(\d)", name):
+        return f"{m[1]}{(8 - int(m[2])) % 8}"
+    for a, b in (("left_wall", "right_wall"), ("ridge_slash", "ridge_backslash")):
+        if name.startswith(a):
+            return b + name[len(a) :]
+        if name.startswith(b):
+            return a + name[len(b) :]
+    return name
+
+
+#: ``features(mirrored image) = features(image)[MIRROR]`` (to float rounding; ``tests/test_backbones.py``)
+MIRROR: tuple[int, ...] = tuple(FEATURE_NAMES.index(_mirror_partner(n)) for n in FEATURE_NAMES)
 
 _EPS = 1e-6
 
@@ -354,6 +375,10 @@ class CuesBackbone(Backbone):
 
     def config(self) -> dict[str, Any]:
         return {"input_size": list(self.input_size)}
+
+    def mirror_index(self) -> tuple[int, ...]:
+        """:data:`MIRROR`: every region of the cues is symmetric about the vertical midline or has its mirror twin."""
+        return MIRROR
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → cues ``(n, 273)`` float32 (:data:`FEATURE_NAMES`).

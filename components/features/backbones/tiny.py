@@ -74,6 +74,12 @@ class TinyImagesBackbone(Backbone):
     def config(self) -> dict[str, Any]:
         return {"grid": self.grid, "input_size": list(self.input_size)}
 
+    def mirror_index(self) -> tuple[int, ...]:
+        """A left-right mirror of the image mirrors each lattice row: cell (row, column) ↔ (row, grid − 1 − column),
+        in each of the four blocks."""
+        g = self.grid
+        return tuple(c * g * g + r * g + (g - 1 - k) for c in range(4) for r in range(g) for k in range(g))
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """sRGB images ``(n, 3, H, W)`` in [0, 1] → ``(n, 4·grid²)`` float32 (see module docstring)."""
         if x.ndim != 4 or x.shape[1] != 3:

@@ -90,9 +90,10 @@ def results_table(
     rows: Mapping[str, Mapping[str, object]], champion: str | None = None, band_level: float = 0.95
 ) -> str:
     """A markdown table, one line per model of ``rows`` (model id → :func:`model_row`): calibration error and its band
-    (at ``band_level``), within band, test NLL, information gain with its standard error, π median, coverage gap, and the day / night median
-    errors of sun altitude (°), fog and precipitation (%), and the lowest night coverage of a central 68 % interval
-    with its parameter and exact binomial interval; the ``champion``'s line in bold. Ends with a newline."""
+    (at ``band_level``), within band, test NLL, information gain with its standard error, π median, coverage gap, the
+    day / night median errors of sun altitude (°), fog and precipitation (%), and the lowest night coverage of a
+    central 68 % interval with its parameter and exact binomial interval; the ``champion``'s line in bold. Ends with a
+    newline."""
     columns = [
         ("calibration error", "calibration_error", 3),
         (f"band ({100 * band_level:g} %)", "calibration_band", 3),

@@ -68,10 +68,10 @@ class TrainingConfig:
             regularizer that keeps a flow trained on few simulations from trusting every feature to its last digit
             (0 = none; never at validation or inference).
         mirror: replace each training input by its mirror image's with probability ½, drawn anew every batch
-            (``train``'s ``mirror`` maps a batch of inputs to those of the left-right mirrored images): a symmetry of
-            the data — the weather, its prior and every nuisance (sun and wind azimuths, scenes) are unchanged in law
-            when the image is mirrored — that doubles the distinct training inputs at no rendering cost (never at
-            validation or inference).
+            (``train``'s ``mirror`` maps a batch of inputs to those of the left-right mirrored images): the weather
+            and the sun and wind azimuths (uniform) keep their law when the image is mirrored, the scenes nearly (the
+            traffic keeps to one side, which the mirrored inputs teach the flow to ignore); twice the distinct
+            training inputs at no rendering cost (never at validation or inference).
         compile: compile the training loss (forward and backward) with ``torch.compile`` (inductor: generated C++
             kernels) and use AdamW's fused kernel; full batches only, the last, smaller batch of an epoch runs
             eagerly. 1.7–1.9× faster steps on a 2-core CPU after a compilation of 35–50 s per model shape (cached on disk
@@ -367,7 +367,7 @@ def train(
         callback: called after each epoch (after the checkpoint is written) with its :class:`EpochRecord`.
         progress: show a tqdm progress bar over epochs.
         mirror: with ``config.mirror``, the inputs ``(B, *input_shape)`` of the left-right mirrored images of a batch's
-            inputs (e.g. :meth:`components.features.backbones.base.Backbone.mirror`); required then, unused otherwise.
+            inputs (e.g. :meth:`components.features.backbones.base.Backbone.mirror_inputs`); required then, unused otherwise.
 
     Returns:
         the :class:`History`; the model is left in eval mode.

@@ -68,8 +68,8 @@ COLUMNS = {"v1": 80, "v2": 241, "v3": None}
 
 
 def parse_setting(name: str) -> dict:
-    """``cues-v2-50000-ens3-e20-t`` → {version, tiny, size, ensemble, epochs, temperature}; ``ValueError`` naming the
-    grammar otherwise."""
+    """``cues-v2-50000-ens3-e20-t`` → {version, tiny, size, ensemble, epochs, noise, mirror, temperature};
+    ``ValueError`` naming the grammar otherwise."""
     m = _SETTING.match(name)
     if not m:
         raise ValueError(

@@ -190,8 +190,9 @@ class TrainConfig(_Section):
     #: (components/posterior/settings.py); 0 = none
     input_noise: Annotated[float, Field(ge=0)]
     input_noise_max_size: PositiveInt
-    #: train on each input or its mirror image's with probability ½ (a left-right mirror leaves the weather and every
-    #: nuisance unchanged in law; components/posterior/train.py); the backbones' features permute under it
+    #: train on each input or its mirror image's with probability ½ (a left-right mirror leaves the weather and the
+    #: sun and wind azimuths unchanged in law, the scenes nearly; components/posterior/train.py); the backbones'
+    #: features permute under it
     mirror: bool
     #: models of at least this many training images are ensembles of ``train.flow.ensemble`` flows, the others one
     #: flow (components/posterior/settings.py)

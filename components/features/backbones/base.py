@@ -138,15 +138,18 @@ class Backbone(nn.Module):
             if inputs.ndim != 4:
                 raise ValueError(f"{self.name}: mirroring expects model inputs (n, C, H, W), got {tuple(inputs.shape)}")
             return inputs.flip(-1)
-        index = self.mirror_index()
-        if index is None:
-            raise ValueError(
-                f"backbone {self.name!r}: its features do not permute under a left-right mirror of the image, so "
-                "train.mirror cannot be used with it (set train.mirror: false)"
-            )
-        if inputs.ndim != 2 or inputs.shape[1] != len(index):
-            raise ValueError(f"{self.name}: mirroring expects features (n, {len(index)}), got {tuple(inputs.shape)}")
-        return inputs[:, torch.as_tensor(index, device=inputs.device)]
+        perm = getattr(self, "_mirror_perm", None)  # built once: this runs on every training batch
+        if perm is None or perm.device != inputs.device:
+            index = self.mirror_index()
+            if index is None:
+                raise ValueError(
+                    f"backbone {self.name!r}: its features do not permute under a left-right mirror of the image, so "
+                    "train.mirror cannot be used with it (set train.mirror: false)"
+                )
+            perm = self._mirror_perm = torch.as_tensor(index, device=inputs.device)
+        if inputs.ndim != 2 or inputs.shape[1] != len(perm):
+            raise ValueError(f"{self.name}: mirroring expects features (n, {len(perm)}), got {tuple(inputs.shape)}")
+        return inputs[:, perm]
 
     # -- identity ------------------------------------------------------------------------------------
     def fingerprint(self) -> str:

@@ -45,7 +45,7 @@ def worker(args: argparse.Namespace) -> None:
         epochs=args.epochs,
         compile=args.worker != "eager",
     )
-    model = NPE(None, args.features, params.box, flow_config(params.train, size=size), seed=0)
+    model = NPE(None, args.features, params.box, flow_config(params.train, size=size, trainable=False), seed=0)
     history = train(model, (x[:size], theta[:size]), (x[size:], theta[size:]), config, progress=False)
     print(json.dumps({"epochs": history.wall_time, "steps_per_epoch": -(-size // config.batch_size)}))
 

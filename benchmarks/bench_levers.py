@@ -17,6 +17,9 @@ Levers (``--setting NAME``, several allowed):
   and per-cell contrast: where the light falls, finer than the cues' 4×4 grid; ``dvc repro features@tiny``);
 * ``…-e<k>``: ``k`` epochs instead of the pipeline's (``params.yaml`` ``train`` with its sample budget);
 * ``…-ens<k>``: an equal-weight ensemble of ``k`` flows;
+* ``…-c<w>x<w>…``: a context network of these widths before the flows (``train.flow.context_layers``), ``-c0``: none;
+  without it the pipeline's (``params.yaml``; settings measured before 2026-11-26's context network had none: ``-c0``
+  reproduces them);
 * ``…-n<σ>``: Gaussian noise of standard deviation σ added to the standardized inputs while training
   (``TrainingConfig.input_noise``, a regularizer; off at evaluation); without it no noise, whatever ``params.yaml``
   says (``train.input_noise``);
@@ -62,25 +65,29 @@ from components.posterior.settings import flow_config, training_config  # noqa: 
 from components.posterior.temperature import calibrate  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 
-_SETTING = re.compile(r"^cues-(v1|v2|v3)(\+tiny)?-(\d+)(?:-ens(\d+))?(?:-e(\d+))?(?:-n([0-9.]+))?(-m)?(-t)?$")
+_SETTING = re.compile(
+    r"^cues-(v1|v2|v3)(\+tiny)?-(\d+)(?:-ens(\d+))?(?:-c(0|\d+(?:x\d+)*))?(?:-e(\d+))?(?:-n([0-9.]+))?(-m)?(-t)?$"
+)
 #: the leading columns of today's cues cache that each cue version computed
 COLUMNS = {"v1": 80, "v2": 241, "v3": None}
 
 
 def parse_setting(name: str) -> dict:
-    """``cues-v2-50000-ens3-e20-t`` → {version, tiny, size, ensemble, epochs, noise, mirror, temperature};
+    """``cues-v2-50000-ens3-c256x128-e20-t`` → {version, tiny, size, ensemble, context_layers, epochs, noise, mirror,
+    temperature} (``context_layers`` None: the pipeline's);
     ``ValueError`` naming the grammar otherwise."""
     m = _SETTING.match(name)
     if not m:
         raise ValueError(
-            f"setting {name!r}: expected cues-(v1|v2|v3)[+tiny]-<size>[-ens<k>][-e<epochs>][-n<σ>][-m][-t]"
+            f"setting {name!r}: expected cues-(v1|v2|v3)[+tiny]-<size>[-ens<k>][-c<w>x<w>…|-c0][-e<epochs>][-n<σ>][-m][-t]"
         )
-    v, tiny, size, ens, ep, noise, mirror, temp = m.groups()
+    v, tiny, size, ens, ctx, ep, noise, mirror, temp = m.groups()
     return {
         "version": v,
         "tiny": bool(tiny),
         "size": int(size),
         "ensemble": int(ens or 1),
+        "context_layers": None if ctx is None else tuple(int(w) for w in ctx.split("x") if w != "0"),
         "epochs": int(ep) if ep else None,
         "noise": float(noise) if noise else 0.0,
         "mirror": bool(mirror),
@@ -102,7 +109,9 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
 
     x = {"train": feats(splits["train"], s["size"]), "val": feats(splits["val"]), "test": feats(splits["test"])}
     theta = {k: splits[k].theta[: len(v)].astype(np.float32) for k, v in x.items()}
-    fc = flow_config(params.train, size=s["size"], ensemble=s["ensemble"])
+    fc = flow_config(params.train, size=s["size"], trainable=False, ensemble=s["ensemble"])
+    if s["context_layers"] is not None:
+        fc = dataclasses.replace(fc, context_layers=s["context_layers"])
     tc = dataclasses.replace(
         training_config(params.train, size=s["size"], trainable=False, seed=seed),
         input_noise=s["noise"],

@@ -161,7 +161,7 @@ def default_configs(params: Any, n_train: int, seed: int) -> tuple[Any, Any]:
     (the small-data rule of ``train.scale_to`` included)."""
     from components.posterior.settings import flow_config, training_config
 
-    return flow_config(params.train, size=n_train), training_config(
+    return flow_config(params.train, size=n_train, trainable=False), training_config(
         params.train, size=n_train, trainable=False, seed=seed
     )
 

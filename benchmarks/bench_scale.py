@@ -148,7 +148,7 @@ def train_hybrid(
     torch.manual_seed(seed)
     mean, std = cues.mean(0), cues.std(0).clamp_min(1e-6)
     cnn = FullResolutionCNN().to(device)
-    fc = dataclasses.replace(flow_config(params.train, size=len(images)), standardize=False)
+    fc = dataclasses.replace(flow_config(params.train, size=len(images), trainable=True), standardize=False)
     flow = NPE(None, cnn.head.out_features + cues.shape[1], params.box, fc, seed=seed).to(device)
     parameters = [*cnn.parameters(), *flow.parameters()]
     opt = torch.optim.AdamW(parameters, lr=params.train.lr, weight_decay=params.train.weight_decay)
@@ -266,7 +266,13 @@ def main(argv: list[str] | None = None) -> None:
             tc = training_config(params.train, size=size, trainable=False, seed=a.seed)
             if a.device != "cpu":  # the pipeline's compile rule is for its CPU (inductor's C++ kernels)
                 tc = dataclasses.replace(tc, compile=False)
-            model = NPE(None, cues["train"].shape[1], params.box, flow_config(params.train, size=size), seed=a.seed)
+            model = NPE(
+                None,
+                cues["train"].shape[1],
+                params.box,
+                flow_config(params.train, size=size, trainable=False),
+                seed=a.seed,
+            )
             model.to(a.device)
             t1 = time.perf_counter()
             history = train(

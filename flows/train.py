@@ -30,7 +30,7 @@ from components.features.backbones import get_backbone
 from components.features.options import backbone_options
 from components.posterior import NPE, train
 from components.posterior.metrics import mean_nll
-from components.posterior.settings import flow_config, training_config
+from components.posterior.settings import ensemble_for, flow_config, training_config
 from components.posterior.store import save_npe
 from components.posterior.temperature import calibrate
 from components.simulate import dataset
@@ -53,10 +53,7 @@ def training_order(params: Params, ids: list[str]) -> list[str]:
 
     def cost(model_id: str) -> tuple[int, int]:
         _, size, variant = params.model_cell(model_id)
-        flows = flow_config(
-            params.train, size=size, ensemble=find_variant(params, variant).ensemble if variant else None
-        )
-        return size, flows.ensemble
+        return size, ensemble_for(params.train, size) if not variant else find_variant(params, variant).ensemble
 
     return sorted(ids, key=cost, reverse=True)
 
@@ -101,7 +98,9 @@ def train_model(
     }
     theta = {s: splits[s].theta[: len(x[s])].astype(np.float32) for s in dataset.SPLITS}
 
-    flow_cfg = flow_config(params.train, size=size, ensemble=variant.ensemble if variant else None)
+    flow_cfg = flow_config(
+        params.train, size=size, trainable=backbone.trainable, ensemble=variant.ensemble if variant else None
+    )
     cfg = training_config(
         params.train,
         size=size,

@@ -180,7 +180,15 @@ def tiny_checkpoint():
 
 
 #: the smallest flow the tests train (params.yaml's ``train.flow`` section)
-TINY_FLOW = {"transforms": 1, "hidden_features": [16], "bins": 4, "passes": 2, "ensemble": 1, "standardize": True}
+TINY_FLOW = {
+    "transforms": 1,
+    "hidden_features": [16],
+    "bins": 4,
+    "passes": 2,
+    "ensemble": 1,
+    "standardize": True,
+    "context_layers": [16, 8],
+}
 
 FAST_TRAINING = {
     "train.epochs": 2,

@@ -29,6 +29,7 @@ def test_levers_settings_grammar() -> None:
         "tiny": True,
         "size": 50000,
         "ensemble": 2,
+        "context_layers": None,
         "epochs": 60,
         "noise": 0.094,
         "mirror": False,
@@ -36,7 +37,10 @@ def test_levers_settings_grammar() -> None:
     }
     assert parse_setting("cues-v1-5000")["tiny"] is False
     assert parse_setting("cues-v3-20000-n0.106-m-t")["mirror"] is True
-    for bad in ("cues-v4-5000", "cues-v3-tiny-5000", "tiny-v3-5000", "cues-v3-5000-x", "cues-v3-5000-t-m"):
+    assert parse_setting("cues-v3-50000-c256x256x128-n0.094-t")["context_layers"] == (256, 256, 128)
+    assert parse_setting("cues-v3-50000-c0-t")["context_layers"] == ()
+    bad_names = ("cues-v4-5000", "cues-v3-tiny-5000", "tiny-v3-5000", "cues-v3-5000-x", "cues-v3-5000-t-m")
+    for bad in (*bad_names, "cues-v3-5000-c256x", "cues-v3-5000-t-c0"):
         with pytest.raises(ValueError, match="expected cues-"):
             parse_setting(bad)
 

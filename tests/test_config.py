@@ -360,11 +360,16 @@ def test_settings_set_every_field_of_the_library_classes(profile, trainable, mon
     t = load_params(PROJECT_ROOT / "params.yaml", profile=profile).train
     flow_kw = _recorded(monkeypatch, settings, "FlowConfig")
     train_kw = _recorded(monkeypatch, settings, "TrainingConfig")
-    flow = settings.flow_config(t, size=max(t.sizes))
+    flow = settings.flow_config(t, size=max(t.sizes), trainable=trainable)
     cfg = settings.training_config(t, size=t.sizes[0], trainable=trainable, seed=11)
     assert set(flow_kw) == {f.name for f in dataclasses.fields(FlowConfig)}
     assert set(train_kw) == {f.name for f in dataclasses.fields(TrainingConfig)}
-    assert dataclasses.asdict(flow) == {**t.flow.model_dump(), "hidden_features": tuple(t.flow.hidden_features)}
+    assert dataclasses.asdict(flow) == {
+        **t.flow.model_dump(),
+        "hidden_features": tuple(t.flow.hidden_features),
+        # a backbone trained with the flow is its own context network
+        "context_layers": () if trainable else tuple(t.flow.context_layers),
+    }
     same = {f.name for f in dataclasses.fields(TrainingConfig)} - {
         "epochs",
         "seed",
@@ -414,7 +419,7 @@ def test_small_training_sets_train_longer_through_a_smaller_flow():
     assert [sum(w) for w in widths] == sorted((sum(w) for w in widths), reverse=True)
     assert patience_for(t, big // 4) == math.ceil(4 * t.patience)
     assert epochs_for(t, big // 4, trainable=False) == min(4 * t.epochs, math.ceil(t.sample_budget / (big // 4)))
-    assert flow_config(t, size=big // 4).hidden_features == hidden_for(t, big // 4)
+    assert flow_config(t, size=big // 4, trainable=False).hidden_features == hidden_for(t, big // 4)
     # input noise: σ ∝ 1/√n up to input_noise_max_size images, only on frozen features
     from components.posterior.settings import input_noise_for
 
@@ -431,8 +436,9 @@ def test_ensembles_from_their_minimum_size():
     t = load_params(PROJECT_ROOT / "params.yaml").train
     t3 = t.model_copy(update={"flow": t.flow.model_copy(update={"ensemble": 3}), "ensemble_min_size": 20000})
     assert [ensemble_for(t3, n) for n in (1, 19999, 20000, 50000)] == [1, 1, 3, 3]
-    assert flow_config(t3, size=5000).ensemble == 1 and flow_config(t3, size=20000).ensemble == 3
-    assert flow_config(t3, size=5000, ensemble=4).ensemble == 4
+    assert flow_config(t3, size=5000, trainable=False).ensemble == 1
+    assert flow_config(t3, size=20000, trainable=True).ensemble == 3
+    assert flow_config(t3, size=5000, trainable=False, ensemble=4).ensemble == 4
     # an ensemble of K flows trains with 1/K of one flow's input noise; a variant's count wins here too
     from components.posterior.settings import input_noise_for, training_config
 

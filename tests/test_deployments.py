@@ -52,6 +52,7 @@ MONITORED_PROJECT = {
         "passes": 2,
         "ensemble": 1,
         "standardize": True,
+        "context_layers": [],
     },
     "monitor.images": 32,
     "monitor.alarm_level": 0.999,

@@ -31,8 +31,11 @@ ROOT = Path(__file__).resolve().parents[1]
 BOX = weather.Box.full()
 
 
-def _features_model(ensemble: int, seed: int) -> NPE:
-    model = NPE(None, 12, BOX, FlowConfig(transforms=2, hidden_features=(24, 24), bins=6, ensemble=ensemble), seed=seed)
+def _features_model(ensemble: int, seed: int, context_layers: tuple[int, ...] = ()) -> NPE:
+    config = FlowConfig(
+        transforms=2, hidden_features=(24, 24), bins=6, ensemble=ensemble, context_layers=context_layers
+    )
+    model = NPE(None, 12, BOX, config, seed=seed)
     rng = seeding.rng(seed, "test", "standardization")
     model.fit_standardization(torch.as_tensor(rng.normal(2.0, 3.0, (200, 12)), dtype=torch.float32))
     return model.eval()
@@ -58,15 +61,15 @@ def _inputs(model: NPE, b: int, seed: int) -> np.ndarray:
 def exported(tmp_path_factory) -> dict[str, tuple[NPE, OnnxPosterior, Path]]:
     """Three models exported (with the fast torchscript exporter) and loaded back.
 
-    ``features``: a coupling flow (2 transforms); ``ensemble``: two of them; ``cnn``: a trainable CNN embedding and a
-    fully autoregressive flow (6 inversion passes). The ensemble and the CNN model have a base scale τ ≠ 1 (the
+    ``features``: a coupling flow (2 transforms); ``ensemble``: two of them after a context network (12 → 16 → 10);
+    ``cnn``: a trainable CNN embedding and a fully autoregressive flow (6 inversion passes). The ensemble and the CNN model have a base scale τ ≠ 1 (the
     post-hoc temperature), so every graph check covers a tempered flow too.
     """
     root = tmp_path_factory.mktemp("registry")
     out = {}
     for name, model in (
         ("features", _features_model(1, 1)),
-        ("ensemble", _features_model(2, 2)),
+        ("ensemble", _features_model(2, 2, context_layers=(16, 10))),
         ("cnn", _cnn_model(3)),
     ):
         if name != "features":
@@ -224,6 +227,10 @@ def test_card_describes_the_model(exported):
         "log_prob.onnx",
         "sample_0.onnx",
     ]
+    ens = json.loads((exported["ensemble"][2] / "card.json").read_text())  # the flows' context: the network's output
+    assert ens["features"] == 10 and ens["flow"]["context_layers"] == [16, 10]
+    assert ens["graphs"]["context"]["outputs"]["context"] == ["batch", 10] and ens["input"]["shape"] == ["batch", 12]
+    assert exported["ensemble"][1].features == 10
 
 
 def test_clear_errors(exported, tmp_path):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -107,8 +108,14 @@ def test_clamp_inward_keeps_float32_inside_float64_box() -> None:
 # --- the estimator -----------------------------------------------------------------------------------------
 
 
-def _model(ensemble: int = 1, dtype: torch.dtype = torch.float32, box: object = BOX, features: int = 5) -> NPE:
-    cfg = FlowConfig(transforms=2, hidden_features=(16, 16), bins=6, ensemble=ensemble)
+def _model(
+    ensemble: int = 1,
+    dtype: torch.dtype = torch.float32,
+    box: object = BOX,
+    features: int = 5,
+    context_layers: tuple[int, ...] = (),
+) -> NPE:
+    cfg = FlowConfig(transforms=2, hidden_features=(16, 16), bins=6, ensemble=ensemble, context_layers=context_layers)
     return NPE(None, features, box, cfg, seed=7).to(dtype)  # type: ignore[arg-type]
 
 
@@ -178,17 +185,17 @@ def test_ensemble_is_equal_weight_mixture_and_flow_is_z_space() -> None:
 BOX_2D = IntervalBox(np.array([0.0, -90.0]), np.array([100.0, 90.0]), ("cloudiness", "sun_altitude_angle"))
 
 
-@pytest.mark.parametrize("ensemble", [1, 2])
-def test_density_integrates_to_one_over_the_box(ensemble: int) -> None:
+@pytest.mark.parametrize(("ensemble", "context_layers"), [(1, ()), (2, ()), (2, (12, 7))])
+def test_density_integrates_to_one_over_the_box(ensemble: int, context_layers: tuple[int, ...]) -> None:
     """∫_box q(θ | x) dθ = 1 (2-D box): Monte Carlo with n uniform points, volume × mean q, within 4 standard errors.
 
     (On the 6-D box an untrained flow piles density near the faces and corners, and uniform Monte Carlo needs
     millions of points to be informative; the code path does not depend on d.)
     """
-    m = _model(ensemble, torch.float64, box=BOX_2D)
+    m = _model(ensemble, torch.float64, box=BOX_2D, context_layers=context_layers)
     x = torch.randn(2, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
     n = 60_000
-    theta = torch.tensor(BOX_2D.sample(seeding.rng(3, "mc", ensemble), 2 * n).reshape(2, n, 2))
+    theta = torch.tensor(BOX_2D.sample(seeding.rng(3, "mc", ensemble, *context_layers), 2 * n).reshape(2, n, 2))
     with torch.no_grad():
         q = torch.exp(m.log_prob(theta, x) + BOX_2D.log_volume()).numpy()  # volume × q(θ), (2, n)
     integral, se = q.mean(axis=1), q.std(axis=1) / math.sqrt(n)
@@ -224,6 +231,62 @@ def test_standardization_fitted_and_embedding_path() -> None:
     assert not torch.equal(before, embedding[0].weight)  # the embedding is trained with the flow
     with pytest.raises(ValueError, match="input_shape"):
         NPE(nn.Linear(10, 8), 8, BOX, SMALL)
+
+
+def test_context_network_shapes_seeding_sharing_and_errors() -> None:
+    """The context network maps the features (B, F) to the flows' context (B, last width): an MLP of the given widths,
+    the same weights for the same seed, one network shared by an ensemble's flows, trained with them; bad widths are
+    refused with the setting's name."""
+    m = _model(2, features=5, context_layers=(12, 7))
+    assert m.context_features == 7 and m.features == 5
+    widths = [layer.out_features for layer in m.context_net if isinstance(layer, nn.Linear)]
+    assert widths == [12, 7]
+    x = torch.randn(4, 5, generator=torch.Generator().manual_seed(1))
+    assert m.context(x).shape == (4, 7)
+    assert all(flow.transform.transforms[1].hyper[0].in_features == BOX.dim + 7 for flow in m.flows)  # θ + context
+    again = _model(2, features=5, context_layers=(12, 7))
+    assert all(torch.equal(a, b) for a, b in zip(m.state_dict().values(), again.state_dict().values(), strict=True))
+    assert sum(isinstance(mod, nn.Linear) and mod.in_features == 5 for mod in m.modules()) == 1  # one shared network
+    assert _model().context_features == 5 and isinstance(_model().context_net, nn.Identity)
+
+    rng = seeding.rng(2, "test", "context")
+    theta = BOX.sample(rng, 256)
+    feats = np.concatenate([theta / 50.0, rng.normal(size=(256, 2))], axis=1)[:, :5].astype(np.float32)
+    before = m.context_net[0].weight.detach().clone()
+    train(
+        m,
+        (feats[:192], theta[:192]),
+        (feats[192:], theta[192:]),
+        TrainingConfig(epochs=2, batch_size=64),
+        progress=False,
+    )
+    assert not torch.equal(before, m.context_net[0].weight)  # trained with the flows
+
+    for bad in [(0,), (8, -1), (True,), "8", (8.0,)]:
+        with pytest.raises(ValueError, match="context_layers"):
+            FlowConfig(context_layers=bad)  # type: ignore[arg-type]
+
+
+def test_saved_model_keeps_its_context_network(tmp_path: Path) -> None:
+    """A model file holds the context network (weights and widths); a file of a pidc before it (no
+    ``context_layers`` in its header) loads as a model without one."""
+    from components.posterior.store import load_npe, save_npe
+
+    m = _model(2, features=5, context_layers=(12, 7)).eval()
+    save_npe(tmp_path / "m.pt", m, backbone="toy", backbone_options={})
+    loaded, header = load_npe(tmp_path / "m.pt")
+    assert list(header["flow"]["context_layers"]) == [12, 7]
+    x = torch.randn(3, 5, generator=torch.Generator().manual_seed(4))
+    theta = torch.tensor(BOX.sample(seeding.rng(4, "t"), 3))
+    with torch.no_grad():
+        assert torch.equal(loaded.log_prob(theta, x), m.log_prob(theta, x))
+    plain = _model(1).eval()
+    save_npe(tmp_path / "old.pt", plain, backbone="toy", backbone_options={})
+    blob = torch.load(tmp_path / "old.pt", weights_only=True)
+    del blob["header"]["flow"]["context_layers"]
+    torch.save(blob, tmp_path / "old.pt")
+    old, _ = load_npe(tmp_path / "old.pt")
+    assert old.config.context_layers == () and isinstance(old.context_net, nn.Identity)
 
 
 # --- loss -----------------------------------------------------------------------------------------------------

@@ -136,6 +136,9 @@ class FlowParams(_Section):
     ensemble: PositiveInt
     #: standardize the flow's inputs with a mean/std fitted on the training set
     standardize: bool
+    #: widths of the context network (an MLP, SiLU between its layers) from the backbone's features to the flows'
+    #: context, shared by an ensemble's flows; the last width is the context size; [] = the features are the context
+    context_layers: tuple[PositiveInt, ...]
 
 
 class VariantConfig(_Section):

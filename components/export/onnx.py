@@ -3,9 +3,9 @@
 The exported folder holds three kinds of graph, all float32 with a dynamic batch dimension ``B``:
 
 ``context.onnx``
-    ``x (B, *input_shape) → context (B, features)``: the standardization ``(x − mean)/std`` and the embedding
+    ``x (B, *input_shape) → context (B, features)``: the standardization ``(x − mean)/std``, the embedding
     (the identity for frozen features; the CNN for a trainable backbone, whose input is ``backbone.preprocess``'s
-    tensor).
+    tensor) and the context network (``FlowConfig.context_layers``); ``features`` is the flows' context size.
 ``log_prob.onnx``
     ``(context (B, features), z (B, d)) → log_qz (B, K)``: each ensemble member's z-space log-density
     ``log qₖ(z | c)`` (the fixed division by ``Z_SCALE`` included), for the K members of the equal-weight mixture.
@@ -67,7 +67,8 @@ EXPORTERS: tuple[str, ...] = ("dynamo", "torchscript")
 
 
 class _ContextGraph(nn.Module):
-    """``x (B, *input_shape) → c (B, features)``: standardization then embedding (NPE.context without the checks)."""
+    """``x (B, *input_shape) → c (B, context_features)``: standardization, embedding and context network (NPE.context
+    without the checks)."""
 
     def __init__(self, model: NPE) -> None:
         super().__init__()
@@ -77,7 +78,7 @@ class _ContextGraph(nn.Module):
         m = self.model
         if m.config.standardize:
             x = (x - m.feature_mean) / m.feature_std
-        return m.embedding(x)
+        return m.context_net(m.embedding(x))
 
 
 class _LogProbGraph(nn.Module):
@@ -441,13 +442,14 @@ def _card(model: NPE, user_card: dict[str, Any], files: dict[str, str], tmp: Pat
             "θ = low + (high − low)·σ(z); log q_θ = log q_z − Σ [log(high − low) + log σ(z) + log σ(−z)]",
         },
         "ensemble": len(model.flows),
-        "features": model.features,
+        "features": model.context_features,
         "flow": {
             "transforms": model.config.transforms,
             "hidden_features": list(model.config.hidden_features),
             "bins": model.config.bins,
             "passes": model.config.passes,
             "standardize": model.config.standardize,
+            "context_layers": list(model.config.context_layers),
         },
         "input": {
             "shape": ["batch", *model.input_shape],
@@ -457,10 +459,10 @@ def _card(model: NPE, user_card: dict[str, Any], files: dict[str, str], tmp: Pat
         "graphs": {
             "context": {
                 "inputs": {"x": ["batch", *model.input_shape]},
-                "outputs": {"context": ["batch", model.features]},
+                "outputs": {"context": ["batch", model.context_features]},
             },
             "log_prob": {
-                "inputs": {"context": ["batch", model.features], "z": ["batch", model.dim]},
+                "inputs": {"context": ["batch", model.context_features], "z": ["batch", model.dim]},
                 "outputs": {"log_qz": ["batch", len(model.flows)]},
             },
             "density": {
@@ -468,7 +470,7 @@ def _card(model: NPE, user_card: dict[str, Any], files: dict[str, str], tmp: Pat
                 "outputs": {"log_prob": ["batch"]},
             },
             "sample": {
-                "inputs": {"context": ["batch", model.features], "eps": ["batch", "draws", model.dim]},
+                "inputs": {"context": ["batch", model.context_features], "eps": ["batch", "draws", model.dim]},
                 "outputs": {"z": ["batch", "draws", model.dim], "log_qz": ["batch", "draws"]},
             },
         },

@@ -15,8 +15,9 @@ Each flow ends with the fixed scaling ε ↦ ε / τ, τ = :attr:`NPE.temperatur
 :mod:`components.posterior.temperature`): the base is N(0, diag τ²).
 
 With ``FlowConfig.ensemble = K > 1`` the estimator is the equal-weight mixture of K flows with independent
-initializations sharing the embedding: ``q(θ | x) = (1/K) Σₖ qₖ(θ | x)``. The members are trained together on the
-same batches, each on its own NPE loss (the loss is their mean), so they differ by their initialization only.
+initializations sharing the embedding and the context network: ``q(θ | x) = (1/K) Σₖ qₖ(θ | x)``. The members are
+trained together on the same batches, each on its own NPE loss (the loss is their mean), so they differ by their
+initialization only.
 
 Used by the ``train`` and ``export`` stages.
 """
@@ -52,6 +53,9 @@ class FlowConfig:
         passes: 2 = coupling flow (fast sampling); ``None`` = fully autoregressive (d passes to sample).
         standardize: standardize the inputs x with a mean/std fitted on the training set (buffers).
         ensemble: number of flows K in the equal-weight mixture (1 = a single flow).
+        context_layers: widths of the context network, a multilayer perceptron (SiLU between its linear layers)
+            from the embedding's features to the flows' context ``c``, shared by the ensemble's members; its last width
+            is the context size. ``()`` = none: the features are the context.
     """
 
     transforms: int = 3
@@ -60,9 +64,15 @@ class FlowConfig:
     passes: int | None = 2
     standardize: bool = True
     ensemble: int = 1
+    context_layers: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden_features", tuple(int(h) for h in self.hidden_features))
+        if isinstance(self.context_layers, (str, bytes)) or any(
+            isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in self.context_layers
+        ):
+            raise ValueError(f"FlowConfig.context_layers must be positive integer widths, got {self.context_layers!r}")
+        object.__setattr__(self, "context_layers", tuple(self.context_layers))
         for name in ("transforms", "bins", "ensemble"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -98,6 +108,20 @@ def _build_flow(dim: int, context: int, config: FlowConfig, seed: int) -> zuko.f
     return zuko.flows.Flow([scale, *nsf.transform.transforms, temper], nsf.base)
 
 
+def context_network(features: int, widths: tuple[int, ...], seed: int) -> nn.Module:
+    """The context network ``(B, features) → (B, widths[-1])``: linear layers of ``widths`` with SiLU between them,
+    weights from ``seed``; the identity for ``widths = ()``."""
+    if not widths:
+        return nn.Identity()
+    layers: list[nn.Module] = []
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        for i, (a, b) in enumerate(zip((features, *widths[:-1]), widths, strict=True)):
+            layers += [nn.SiLU()] if i else []
+            layers.append(nn.Linear(a, b))
+    return nn.Sequential(*layers)
+
+
 def _generator(rng: torch.Generator | int) -> torch.Generator:
     if isinstance(rng, torch.Generator):
         return rng
@@ -112,13 +136,14 @@ class NPE(nn.Module):
     Arguments:
         embedding: a module mapping inputs ``(B, *input_shape)`` to contexts ``(B, features)``, trained with the
             flow; ``None`` = identity (cached, frozen features of size ``features``).
-        features: the context size (after the embedding).
+        features: the embedding's output size (the input of the context network, ``FlowConfig.context_layers``).
         box: the prior box (:class:`components.core.weather.Box`, of any dimension d).
         config: the flow's hyper-parameters.
         input_shape: the shape of one input; defaults to ``(features,)`` without an embedding. Required with an
             embedding when ``config.standardize`` (the mean/std buffers have this shape: per-element standardization).
-        seed: the flows' initial weights descend from it (member k from ``derive_seed(seed, "posterior", "flow", k)``);
-            the embedding is initialized by the caller.
+        seed: the flows' initial weights descend from it (member k from ``derive_seed(seed, "posterior", "flow", k)``,
+            the context network from ``derive_seed(seed, "posterior", "context")``); the embedding is initialized by
+            the caller.
 
     Attributes:
         feature_mean, feature_std: standardization buffers of shape ``input_shape`` (zeros/ones until
@@ -165,12 +190,20 @@ class NPE(nn.Module):
             assert self.input_shape is not None
             self.register_buffer("feature_mean", torch.zeros(self.input_shape))
             self.register_buffer("feature_std", torch.ones(self.input_shape))
+        self.context_net = context_network(
+            features, config.context_layers, seeding.derive_seed(seed, "posterior", "context")
+        )
         self.flows = nn.ModuleList(
-            _build_flow(self.box.dim, features, config, seeding.derive_seed(seed, "posterior", "flow", k))
+            _build_flow(self.box.dim, self.context_features, config, seeding.derive_seed(seed, "posterior", "flow", k))
             for k in range(config.ensemble)
         )
 
     # --- shapes and inputs -------------------------------------------------------------------------------
+
+    @property
+    def context_features(self) -> int:
+        """The size of the flows' context ``c``: the context network's last width, or ``features`` without one."""
+        return self.config.context_layers[-1] if self.config.context_layers else self.features
 
     @property
     def dim(self) -> int:
@@ -230,7 +263,8 @@ class NPE(nn.Module):
         self.feature_std.copy_(std.to(self.feature_std))
 
     def context(self, x: Tensor) -> Tensor:
-        """The flow's context ``c = embedding((x − mean)/std)``: ``(B, *input_shape) → (B, features)``."""
+        """The flows' context ``c = context_net(embedding((x − mean)/std))``: ``(B, *input_shape) → (B,
+        context_features)``."""
         x = self._inputs(x)
         if self.config.standardize:
             x = (x - self.feature_mean) / self.feature_std
@@ -239,7 +273,7 @@ class NPE(nn.Module):
             raise ValueError(
                 f"the embedding must return (batch, features) = ({x.shape[0]}, {self.features}), got {tuple(c.shape)}"
             )
-        return c
+        return self.context_net(c)
 
     def _theta(self, theta: Tensor, batch: int) -> Tensor:
         theta = torch.as_tensor(theta)

@@ -74,9 +74,14 @@ def ensemble_for(train_section: TrainConfig, size: int) -> int:
     return train_section.flow.ensemble if size >= train_section.ensemble_min_size else 1
 
 
-def flow_config(train_section: TrainConfig, *, size: int, ensemble: int | None = None) -> FlowConfig:
+def flow_config(train_section: TrainConfig, *, size: int, trainable: bool, ensemble: int | None = None) -> FlowConfig:
     """The conditional flow of ``train.flow`` for a model of ``size`` training images (:func:`hidden_for`,
-    :func:`ensemble_for`); ``ensemble`` (a variant's) replaces that count."""
+    :func:`ensemble_for`); ``ensemble`` (a variant's) replaces that count.
+
+    The context network (``train.flow.context_layers``) sits between frozen features and the flows; a backbone
+    trained jointly with the flow (``trainable``, the ``cnn``) is itself that learned map, and gets none: measured in
+    the pipeline, the network behind the cnn cost it 0.2–0.3 nats at every size, while it added 0.2–0.6 to the cues
+    and tiny models (BENCHMARKS.md, "A context network before the flows")."""
     f = train_section.flow
     return FlowConfig(
         **_every_field(
@@ -88,6 +93,7 @@ def flow_config(train_section: TrainConfig, *, size: int, ensemble: int | None =
                 passes=f.passes,
                 standardize=f.standardize,
                 ensemble=ensemble_for(train_section, size) if ensemble is None else ensemble,
+                context_layers=() if trainable else tuple(f.context_layers),
             ),
         )
     )

@@ -74,6 +74,7 @@ def load_npe(path: str | Path) -> tuple[NPE, dict[str, Any]]:
     )
     flow = dict(header["flow"])
     flow["hidden_features"] = tuple(flow["hidden_features"])
+    flow["context_layers"] = tuple(flow.get("context_layers", ()))  # files written before the context network: none
     embedding = None
     if header["trainable_backbone"]:
         from components.features.backbones import get_backbone

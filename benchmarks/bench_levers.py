@@ -87,7 +87,7 @@ def parse_setting(name: str) -> dict:
         "tiny": bool(tiny),
         "size": int(size),
         "ensemble": int(ens or 1),
-        "context_layers": None if ctx is None else tuple(int(w) for w in ctx.split("x") if w != "0"),
+        "context_layers": None if ctx is None else () if ctx == "0" else tuple(int(w) for w in ctx.split("x")),
         "epochs": int(ep) if ep else None,
         "noise": float(noise) if noise else 0.0,
         "mirror": bool(mirror),

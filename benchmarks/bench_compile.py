@@ -41,7 +41,7 @@ def worker(args: argparse.Namespace) -> None:
     size = args.size
     x, theta = synthetic(size + 2000, args.features, 0)
     config = dataclasses.replace(
-        training_config(params.train, size=size, trainable=False, seed=0),
+        training_config(params.train, size=size, trainable=False, features=args.features, seed=0),
         epochs=args.epochs,
         compile=args.worker != "eager",
     )

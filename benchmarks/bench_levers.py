@@ -113,7 +113,7 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
     if s["context_layers"] is not None:
         fc = dataclasses.replace(fc, context_layers=s["context_layers"])
     tc = dataclasses.replace(
-        training_config(params.train, size=s["size"], trainable=False, seed=seed),
+        training_config(params.train, size=s["size"], trainable=False, features=x["train"].shape[1], seed=seed),
         input_noise=s["noise"],
         mirror=s["mirror"],
     )

@@ -154,15 +154,16 @@ SETTINGS: dict[str, tuple[str, Rule]] = {
 }
 
 
-def default_configs(params: Any, n_train: int, seed: int) -> tuple[Any, Any]:
-    """The pipeline's ``(FlowConfig, TrainingConfig)`` for ``n_train`` training simulations: ``params.yaml``'s
+def default_configs(params: Any, n_train: int, x_dim: int, seed: int) -> tuple[Any, Any]:
+    """The pipeline's ``(FlowConfig, TrainingConfig)`` for ``n_train`` training simulations of ``x_dim``-dimensional
+    observations: ``params.yaml``'s
     ``train:`` section (``params``, a loaded :class:`components.core.config.Params`) through
     :mod:`components.posterior.settings`, as ``flows/train.py`` builds them for cached features of ``n_train`` images
     (the small-data rule of ``train.scale_to`` included)."""
     from components.posterior.settings import flow_config, training_config
 
     return flow_config(params.train, size=n_train, trainable=False), training_config(
-        params.train, size=n_train, trainable=False, seed=seed
+        params.train, size=n_train, trainable=False, features=x_dim, seed=seed
     )
 
 
@@ -182,7 +183,7 @@ def run_pidc(
     from components.posterior import NPE, train
 
     train_set, val_set = sims.split(args.val_fraction)
-    base = default_configs(args.pidc_params, len(train_set.theta), args.seed)
+    base = default_configs(args.pidc_params, len(train_set.theta), problem.x_dim, args.seed)
     flow_cfg, train_cfg = pidc_configs(setting, len(train_set.theta), base)
     box = weather.Box(problem.low, problem.high)
     model = NPE(None, problem.x_dim, box, flow_cfg, seed=args.seed)

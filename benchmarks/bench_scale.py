@@ -263,7 +263,7 @@ def main(argv: list[str] | None = None) -> None:
 
     for name, (kind, size, epochs, flip) in zip(a.models, models, strict=True):
         if kind == "cues":
-            tc = training_config(params.train, size=size, trainable=False, seed=a.seed)
+            tc = training_config(params.train, size=size, trainable=False, features=cues["train"].shape[1], seed=a.seed)
             if a.device != "cpu":  # the pipeline's compile rule is for its CPU (inductor's C++ kernels)
                 tc = dataclasses.replace(tc, compile=False)
             model = NPE(

@@ -105,6 +105,7 @@ def train_model(
         params.train,
         size=size,
         trainable=backbone.trainable,
+        features=backbone.dim,
         seed=seeding.derive_seed(params.seed, "train") % 2**31,
         balance=variant.balance if variant else None,
         ensemble=variant.ensemble if variant else None,

@@ -174,6 +174,7 @@ MISSING = [
     "task3.bags.b1.max_images",
     "task3.smoothing",
     "train.input_noise_max_size",
+    "train.input_noise_min_features",
     "train.compile_min_steps",
     "train.mirror",
     "train.ensemble_min_size",
@@ -361,7 +362,7 @@ def test_settings_set_every_field_of_the_library_classes(profile, trainable, mon
     flow_kw = _recorded(monkeypatch, settings, "FlowConfig")
     train_kw = _recorded(monkeypatch, settings, "TrainingConfig")
     flow = settings.flow_config(t, size=max(t.sizes), trainable=trainable)
-    cfg = settings.training_config(t, size=t.sizes[0], trainable=trainable, seed=11)
+    cfg = settings.training_config(t, size=t.sizes[0], trainable=trainable, features=273, seed=11)
     assert set(flow_kw) == {f.name for f in dataclasses.fields(FlowConfig)}
     assert set(train_kw) == {f.name for f in dataclasses.fields(TrainingConfig)}
     assert dataclasses.asdict(flow) == {
@@ -379,7 +380,7 @@ def test_settings_set_every_field_of_the_library_classes(profile, trainable, mon
     }
     assert {k: getattr(cfg, k) for k in same} == {k: getattr(t, k) for k in same}
     assert cfg.patience == settings.patience_for(t, t.sizes[0])
-    assert cfg.input_noise == settings.input_noise_for(t, t.sizes[0], trainable=trainable)
+    assert cfg.input_noise == settings.input_noise_for(t, t.sizes[0], trainable=trainable, features=273)
     assert cfg.epochs == settings.epochs_for(t, t.sizes[0], trainable=trainable) and cfg.seed == 11
     assert cfg.compile == settings.compile_for(t, t.sizes[0], trainable=trainable)
 
@@ -398,7 +399,7 @@ def test_epochs_follow_the_sample_budget(trainable):
     assert all(1 <= e <= math.ceil(cap * s) for e, s in zip(epochs, scale, strict=True))
     assert all((e - 1) * n < budget for e, n in zip(epochs, sizes, strict=True))  # the last epoch may overrun
     assert epochs == sorted(epochs, reverse=True) and epochs[-1] == 1
-    assert training_config(t, size=5000, trainable=trainable, seed=1).epochs == epochs[3]
+    assert training_config(t, size=5000, trainable=trainable, features=273, seed=1).epochs == epochs[3]
     for bad in (0, -3, 2.5, True):
         with pytest.raises(ValueError, match="size must be a positive integer"):
             epochs_for(t, bad, trainable=trainable)
@@ -423,10 +424,30 @@ def test_small_training_sets_train_longer_through_a_smaller_flow():
     # input noise: σ ∝ 1/√n up to input_noise_max_size images, only on frozen features
     from components.posterior.settings import input_noise_for
 
-    assert t.input_noise > 0 and input_noise_for(t, big, trainable=False) == t.input_noise
-    assert input_noise_for(t, big // 4, trainable=False) == pytest.approx(2 * t.input_noise)  # σ ∝ 1/√n
-    assert input_noise_for(t, t.input_noise_max_size + 1, trainable=False) == 0.0
-    assert input_noise_for(t, big // 2, trainable=True) == 0.0
+    d = t.input_noise_min_features
+    assert t.input_noise > 0 and input_noise_for(t, big, trainable=False, features=d) == t.input_noise
+    assert input_noise_for(t, big // 4, trainable=False, features=d) == pytest.approx(2 * t.input_noise)  # σ ∝ 1/√n
+    assert input_noise_for(t, t.input_noise_max_size + 1, trainable=False, features=d) == 0.0
+    assert input_noise_for(t, big // 2, trainable=True, features=d) == 0.0
+
+
+def test_input_noise_only_on_many_features():
+    """No input noise below train.input_noise_min_features features (a few informative inputs, the SBI problems'),
+    the rule's σ from there on; the pipeline's frozen backbones (cues 273, tiny 256) are all above the floor."""
+    from components.features.backbones import get_backbone
+    from components.posterior.settings import input_noise_for, training_config
+
+    t = load_params(PROJECT_ROOT / "params.yaml").train
+    d = t.input_noise_min_features
+    assert 10 < d <= min(get_backbone(name).dim for name in ("cues", "tiny"))
+    noise = [input_noise_for(t, 1000, trainable=False, features=f) for f in (1, 2, 10, d - 1, d, 10 * d)]
+    assert noise[:4] == [0.0] * 4 and noise[4] == noise[5] == pytest.approx(
+        t.input_noise * math.sqrt(t.scale_to / 1000)
+    )
+    assert training_config(t, size=1000, trainable=False, features=2, seed=0).input_noise == 0.0
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match="features must be a positive integer"):
+            input_noise_for(t, 1000, trainable=False, features=bad)
 
 
 def test_ensembles_from_their_minimum_size():
@@ -443,9 +464,10 @@ def test_ensembles_from_their_minimum_size():
     from components.posterior.settings import input_noise_for, training_config
 
     one = t3.input_noise * math.sqrt(t3.scale_to / 20000)
-    assert input_noise_for(t3, 20000, trainable=False) == pytest.approx(one / 3)
-    assert input_noise_for(t3, 20000, trainable=False, ensemble=1) == pytest.approx(one)
-    assert training_config(t3, size=20000, trainable=False, seed=0, ensemble=2).input_noise == pytest.approx(one / 2)
+    assert input_noise_for(t3, 20000, trainable=False, features=273) == pytest.approx(one / 3)
+    assert input_noise_for(t3, 20000, trainable=False, features=273, ensemble=1) == pytest.approx(one)
+    two = training_config(t3, size=20000, trainable=False, features=273, seed=0, ensemble=2)
+    assert two.input_noise == pytest.approx(one / 2)
     assert all(ensemble_for(t, n) == (t.flow.ensemble if n >= t.ensemble_min_size else 1) for n in t.sizes)
     with pytest.raises(ValueError, match="size must be a positive integer"):
         ensemble_for(t, 0)
@@ -460,7 +482,9 @@ def test_models_of_many_steps_compile_their_training_loss():
         for trainable in (False, True):
             steps = epochs_for(t, size, trainable=trainable) * math.ceil(size / t.batch_size)
             assert compile_for(t, size, trainable=trainable) == (steps >= t.compile_min_steps)
-            assert training_config(t, size=size, trainable=trainable, seed=0).compile == (steps >= t.compile_min_steps)
+            assert training_config(t, size=size, trainable=trainable, features=273, seed=0).compile == (
+                steps >= t.compile_min_steps
+            )
     assert compile_for(t, max(t.sizes), trainable=False)  # the default grid's largest frozen-feature models compile
     assert not compile_for(t.model_copy(update={"compile_min_steps": None}), max(t.sizes), trainable=False)
     assert compile_for(t.model_copy(update={"compile_min_steps": 0}), 1, trainable=True)

@@ -115,10 +115,13 @@ def patience_for(train_section: TrainConfig, size: int) -> int:
     return math.ceil(train_section.patience * small_data_scale(train_section, size))
 
 
-def input_noise_for(train_section: TrainConfig, size: int, *, trainable: bool, ensemble: int | None = None) -> float:
-    """σ of the training-input noise for ``size`` frozen-feature training images: ``train.input_noise`` ×
-    √(``scale_to`` / size) / K up to ``train.input_noise_max_size`` images, 0 above and for a trainable backbone (it
-    sees images, not features); K is the model's number of flows (``ensemble``, by default :func:`ensemble_for`).
+def input_noise_for(
+    train_section: TrainConfig, size: int, *, trainable: bool, features: int, ensemble: int | None = None
+) -> float:
+    """σ of the training-input noise for ``size`` training images of ``features`` frozen features:
+    ``train.input_noise`` × √(``scale_to`` / size) / K up to ``train.input_noise_max_size`` images, 0 above, 0 for
+    fewer than ``train.input_noise_min_features`` features and for a trainable backbone (it sees images, not
+    features); K is the model's number of flows (``ensemble``, by default :func:`ensemble_for`).
     The noise a flow needs falls as 1/√n with its data: measured on the cues, σ = 0.3 at 5k and
     0.15 at 20k bring the tempered flows from 0.104 and 0.091 to 0.065 and 0.020 at no loss of information. At 50k the
     noise follows the training length: after 20 epochs 0.094 costs 0.1 nats and overshoots into underconfidence, after
@@ -126,10 +129,14 @@ def input_noise_for(train_section: TrainConfig, size: int, *, trainable: bool, e
     epochs gain (BENCHMARKS.md, "Cues version 3 and input noise", "Training the 50k models longer"). An ensemble
     widens the posterior by its members' disagreement and needs less: two cues flows at 50k are overconfident without
     noise (coverage gap −0.013), underconfident with 0.094 (+0.023) and calibrated with 0.047 (+0.003; BENCHMARKS.md,
-    "An ensemble of flows at 50k"); the 1/K is measured at K = 2 only."""
-    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
-        raise ValueError(f"size must be a positive integer, got {size!r}")
-    if trainable or size > train_section.input_noise_max_size:
+    "An ensemble of flows at 50k"); the 1/K is measured at K = 2 only. On a few informative features the same noise
+    erases the signal instead: on the SBI problems' 2–10 inputs it took the classifier two-sample accuracy at 1k
+    simulations from 0.73–0.75 to 0.86–0.96 (BENCHMARKS.md, "The SBI problems with today's defaults"), hence the
+    floor on the number of features."""
+    for name, value in (("size", size), ("features", features)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    if trainable or size > train_section.input_noise_max_size or features < train_section.input_noise_min_features:
         return 0.0
     k = ensemble_for(train_section, size) if ensemble is None else ensemble
     return float(train_section.input_noise) * math.sqrt(train_section.scale_to / size) / k
@@ -153,12 +160,13 @@ def training_config(
     *,
     size: int,
     trainable: bool,
+    features: int,
     seed: int,
     balance: float | None = None,
     ensemble: int | None = None,
 ) -> TrainingConfig:
-    """The training settings of ``train`` for a model of ``size`` training images: :func:`epochs_for` epochs,
-    :func:`input_noise_for` noise; ``seed`` is the caller's; ``balance`` and ``ensemble`` (a variant's) replace
+    """The training settings of ``train`` for a model of ``size`` training images of ``features`` input features
+    (the backbone's dimension): :func:`epochs_for` epochs, :func:`input_noise_for` noise; ``seed`` is the caller's; ``balance`` and ``ensemble`` (a variant's) replace
     ``train.balance`` and the flows of :func:`ensemble_for`."""
     t = train_section
     return TrainingConfig(
@@ -178,7 +186,7 @@ def training_config(
                 clip_norm=t.clip_norm,
                 seed=seed,
                 balance=t.balance if balance is None else balance,
-                input_noise=input_noise_for(t, size, trainable=trainable, ensemble=ensemble),
+                input_noise=input_noise_for(t, size, trainable=trainable, features=features, ensemble=ensemble),
                 mirror=t.mirror,
                 compile=compile_for(t, size, trainable=trainable),
             ),

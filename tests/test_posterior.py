@@ -262,9 +262,12 @@ def test_context_network_shapes_seeding_sharing_and_errors() -> None:
     )
     assert not torch.equal(before, m.context_net[0].weight)  # trained with the flows
 
-    for bad in [(0,), (8, -1), (True,), "8", (8.0,)]:
+    for bad in [(0,), (8, -1), (True,), "8", (8.0,), 8, None, {8: 8}]:
         with pytest.raises(ValueError, match="context_layers"):
             FlowConfig(context_layers=bad)  # type: ignore[arg-type]
+    for bad in [8, (8.0, 8), ("8",), (True, 8)]:
+        with pytest.raises(ValueError, match="hidden_features"):
+            FlowConfig(hidden_features=bad)  # type: ignore[arg-type]
 
 
 def test_saved_model_keeps_its_context_network(tmp_path: Path) -> None:

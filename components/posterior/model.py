@@ -67,8 +67,12 @@ class FlowConfig:
     context_layers: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "hidden_features", tuple(int(h) for h in self.hidden_features))
-        if isinstance(self.context_layers, (str, bytes)) or any(
+        if not isinstance(self.hidden_features, (tuple, list)) or any(
+            isinstance(h, bool) or not isinstance(h, int) for h in self.hidden_features
+        ):
+            raise ValueError(f"FlowConfig.hidden_features must be integer widths, got {self.hidden_features!r}")
+        object.__setattr__(self, "hidden_features", tuple(self.hidden_features))
+        if not isinstance(self.context_layers, (tuple, list)) or any(
             isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in self.context_layers
         ):
             raise ValueError(f"FlowConfig.context_layers must be positive integer widths, got {self.context_layers!r}")

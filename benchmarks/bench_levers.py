@@ -20,6 +20,8 @@ Levers (``--setting NAME``, several allowed):
 * ``…-c<w>x<w>…``: a context network of these widths before the flows (``train.flow.context_layers``), ``-c0``: none;
   without it the pipeline's (``params.yaml``; settings measured before 2026-11-26's context network had none: ``-c0``
   reproduces them);
+* ``…-lr<x>``, ``…-wd<x>``: AdamW's learning rate and weight decay instead of the pipeline's (``train.lr``,
+  ``train.weight_decay``);
 * ``…-n<σ>``: Gaussian noise of standard deviation σ added to the standardized inputs while training
   (``TrainingConfig.input_noise``, a regularizer; off at evaluation); without it no noise, whatever ``params.yaml``
   says (``train.input_noise``);
@@ -66,22 +68,24 @@ from components.posterior.temperature import calibrate  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 
 _SETTING = re.compile(
-    r"^cues-(v1|v2|v3)(\+tiny)?-(\d+)(?:-ens(\d+))?(?:-c(0|\d+(?:x\d+)*))?(?:-e(\d+))?(?:-n([0-9.]+))?(-m)?(-t)?$"
+    r"^cues-(v1|v2|v3)(\+tiny)?-(\d+)(?:-ens(\d+))?(?:-c(0|\d+(?:x\d+)*))?(?:-e(\d+))?(?:-lr([0-9.e-]+))?"
+    r"(?:-wd([0-9.e-]+))?(?:-n([0-9.]+))?(-m)?(-t)?$"
 )
 #: the leading columns of today's cues cache that each cue version computed
 COLUMNS = {"v1": 80, "v2": 241, "v3": None}
 
 
 def parse_setting(name: str) -> dict:
-    """``cues-v2-50000-ens3-c256x128-e20-t`` → {version, tiny, size, ensemble, context_layers, epochs, noise, mirror,
-    temperature} (``context_layers`` None: the pipeline's);
+    """``cues-v2-50000-ens3-c256x128-e20-t`` → {version, tiny, size, ensemble, context_layers, epochs, lr,
+    weight_decay, noise, mirror, temperature} (``context_layers``, ``lr``, ``weight_decay`` None: the pipeline's);
     ``ValueError`` naming the grammar otherwise."""
     m = _SETTING.match(name)
     if not m:
         raise ValueError(
-            f"setting {name!r}: expected cues-(v1|v2|v3)[+tiny]-<size>[-ens<k>][-c<w>x<w>…|-c0][-e<epochs>][-n<σ>][-m][-t]"
+            f"setting {name!r}: expected "
+            "cues-(v1|v2|v3)[+tiny]-<size>[-ens<k>][-c<w>x<w>…|-c0][-e<epochs>][-lr<lr>][-wd<decay>][-n<σ>][-m][-t]"
         )
-    v, tiny, size, ens, ctx, ep, noise, mirror, temp = m.groups()
+    v, tiny, size, ens, ctx, ep, lr, wd, noise, mirror, temp = m.groups()
     return {
         "version": v,
         "tiny": bool(tiny),
@@ -89,6 +93,8 @@ def parse_setting(name: str) -> dict:
         "ensemble": int(ens or 1),
         "context_layers": None if ctx is None else () if ctx == "0" else tuple(int(w) for w in ctx.split("x")),
         "epochs": int(ep) if ep else None,
+        "lr": float(lr) if lr else None,
+        "weight_decay": float(wd) if wd else None,
         "noise": float(noise) if noise else 0.0,
         "mirror": bool(mirror),
         "temperature": bool(temp),
@@ -119,6 +125,10 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
     )
     if s["epochs"]:
         tc = dataclasses.replace(tc, epochs=s["epochs"])
+    if s["lr"] is not None:
+        tc = dataclasses.replace(tc, lr=s["lr"])
+    if s["weight_decay"] is not None:
+        tc = dataclasses.replace(tc, weight_decay=s["weight_decay"])
     model = NPE(None, x["train"].shape[1], params.box, fc, seed=seed)
     t0 = time.perf_counter()
     history = train(

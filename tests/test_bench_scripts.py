@@ -31,6 +31,8 @@ def test_levers_settings_grammar() -> None:
         "ensemble": 2,
         "context_layers": None,
         "epochs": 60,
+        "lr": None,
+        "weight_decay": None,
         "noise": 0.094,
         "mirror": False,
         "temperature": True,
@@ -39,8 +41,10 @@ def test_levers_settings_grammar() -> None:
     assert parse_setting("cues-v3-20000-n0.106-m-t")["mirror"] is True
     assert parse_setting("cues-v3-50000-c256x256x128-n0.094-t")["context_layers"] == (256, 256, 128)
     assert parse_setting("cues-v3-50000-c0-t")["context_layers"] == ()
+    tuned = parse_setting("cues-v3-50000-e48-lr2e-3-wd0.001-n0.094-t")
+    assert (tuned["epochs"], tuned["lr"], tuned["weight_decay"], tuned["noise"]) == (48, 2e-3, 1e-3, 0.094)
     bad_names = ("cues-v4-5000", "cues-v3-tiny-5000", "tiny-v3-5000", "cues-v3-5000-x", "cues-v3-5000-t-m")
-    for bad in (*bad_names, "cues-v3-5000-c256x", "cues-v3-5000-t-c0"):
+    for bad in (*bad_names, "cues-v3-5000-c256x", "cues-v3-5000-t-c0", "cues-v3-5000-wd0.1-lr0.1"):
         with pytest.raises(ValueError, match="expected cues-"):
             parse_setting(bad)
 

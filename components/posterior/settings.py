@@ -119,7 +119,7 @@ def input_noise_for(
     train_section: TrainConfig, size: int, *, trainable: bool, features: int, ensemble: int | None = None
 ) -> float:
     """σ of the training-input noise for ``size`` training images of ``features`` frozen features:
-    ``train.input_noise`` × √(``scale_to`` / size) / K up to ``train.input_noise_max_size`` images, 0 above, 0 for
+    ``train.input_noise`` × √(``scale_to`` / size) / √K up to ``train.input_noise_max_size`` images, 0 above, 0 for
     fewer than ``train.input_noise_min_features`` features and for a trainable backbone (it sees images, not
     features); K is the model's number of flows (``ensemble``, by default :func:`ensemble_for`).
     The noise a flow needs falls as 1/√n with its data: measured on the cues, σ = 0.3 at 5k and
@@ -129,7 +129,9 @@ def input_noise_for(
     epochs gain (BENCHMARKS.md, "Cues version 3 and input noise", "Training the 50k models longer"). An ensemble
     widens the posterior by its members' disagreement and needs less: two cues flows at 50k are overconfident without
     noise (coverage gap −0.013), underconfident with 0.094 (+0.023) and calibrated with 0.047 (+0.003; BENCHMARKS.md,
-    "An ensemble of flows at 50k"); the 1/K is measured at K = 2 only. On a few informative features the same noise
+    "An ensemble of flows at 50k"). With the context network, 0.047 (σ/K) left one of two flow seeds outside the
+    calibration band (0.041) and 0.066 (σ/√K) kept both inside (0.027, 0.015) for 0.08–0.10 nats (BENCHMARKS.md,
+    "Less noise, two flows, two seeds"): σ/√K, measured at K = 2 only. On a few informative features the same noise
     erases the signal instead: on the SBI problems' 2–10 inputs it took the classifier two-sample accuracy at 1k
     simulations from 0.73–0.75 to 0.86–0.96 (BENCHMARKS.md, "The SBI problems with today's defaults"), hence the
     floor on the number of features."""
@@ -139,7 +141,7 @@ def input_noise_for(
     if trainable or size > train_section.input_noise_max_size or features < train_section.input_noise_min_features:
         return 0.0
     k = ensemble_for(train_section, size) if ensemble is None else ensemble
-    return float(train_section.input_noise) * math.sqrt(train_section.scale_to / size) / k
+    return float(train_section.input_noise) * math.sqrt(train_section.scale_to / size / k)
 
 
 def compile_for(train_section: TrainConfig, size: int, *, trainable: bool) -> bool:

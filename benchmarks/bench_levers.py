@@ -68,8 +68,8 @@ from components.posterior.temperature import calibrate  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 
 _SETTING = re.compile(
-    r"^cues-(v1|v2|v3)(\+tiny)?-(\d+)(?:-ens(\d+))?(?:-c(0|\d+(?:x\d+)*))?(?:-e(\d+))?(?:-lr([0-9.e-]+))?"
-    r"(?:-wd([0-9.e-]+))?(?:-n([0-9.]+))?(-m)?(-t)?$"
+    r"^cues-(v1|v2|v3)(\+tiny)?-(\d+)(?:-ens(\d+))?(?:-c(0|\d+(?:x\d+)*))?(?:-e(\d+))?(?:-lr(\d+(?:\.\d+)?(?:e-?\d+)?))?"
+    r"(?:-wd(\d+(?:\.\d+)?(?:e-?\d+)?))?(?:-n([0-9.]+))?(-m)?(-t)?$"
 )
 #: the leading columns of today's cues cache that each cue version computed
 COLUMNS = {"v1": 80, "v2": 241, "v3": None}
@@ -118,17 +118,13 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
     fc = flow_config(params.train, size=s["size"], trainable=False, ensemble=s["ensemble"])
     if s["context_layers"] is not None:
         fc = dataclasses.replace(fc, context_layers=s["context_layers"])
+    chosen = {k: s[k] for k in ("epochs", "lr", "weight_decay") if s[k] is not None}  # else the pipeline's
     tc = dataclasses.replace(
         training_config(params.train, size=s["size"], trainable=False, features=x["train"].shape[1], seed=seed),
         input_noise=s["noise"],
         mirror=s["mirror"],
+        **chosen,
     )
-    if s["epochs"]:
-        tc = dataclasses.replace(tc, epochs=s["epochs"])
-    if s["lr"] is not None:
-        tc = dataclasses.replace(tc, lr=s["lr"])
-    if s["weight_decay"] is not None:
-        tc = dataclasses.replace(tc, weight_decay=s["weight_decay"])
     model = NPE(None, x["train"].shape[1], params.box, fc, seed=seed)
     t0 = time.perf_counter()
     history = train(

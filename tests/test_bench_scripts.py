@@ -44,7 +44,7 @@ def test_levers_settings_grammar() -> None:
     tuned = parse_setting("cues-v3-50000-e48-lr2e-3-wd0.001-n0.094-t")
     assert (tuned["epochs"], tuned["lr"], tuned["weight_decay"], tuned["noise"]) == (48, 2e-3, 1e-3, 0.094)
     bad_names = ("cues-v4-5000", "cues-v3-tiny-5000", "tiny-v3-5000", "cues-v3-5000-x", "cues-v3-5000-t-m")
-    for bad in (*bad_names, "cues-v3-5000-c256x", "cues-v3-5000-t-c0", "cues-v3-5000-wd0.1-lr0.1"):
+    for bad in (*bad_names, "cues-v3-5000-c256x", "cues-v3-5000-t-c0", "cues-v3-5000-wd0.1-lr0.1", "cues-v3-5000-lr-"):
         with pytest.raises(ValueError, match="expected cues-"):
             parse_setting(bad)
 

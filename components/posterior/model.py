@@ -67,24 +67,21 @@ class FlowConfig:
     context_layers: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
-        if not isinstance(self.hidden_features, (tuple, list)) or any(
-            isinstance(h, bool) or not isinstance(h, int) for h in self.hidden_features
-        ):
-            raise ValueError(f"FlowConfig.hidden_features must be integer widths, got {self.hidden_features!r}")
-        object.__setattr__(self, "hidden_features", tuple(self.hidden_features))
-        if not isinstance(self.context_layers, (tuple, list)) or any(
-            isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in self.context_layers
-        ):
-            raise ValueError(f"FlowConfig.context_layers must be positive integer widths, got {self.context_layers!r}")
-        object.__setattr__(self, "context_layers", tuple(self.context_layers))
+        for name in ("hidden_features", "context_layers"):
+            widths = getattr(self, name)
+            if not isinstance(widths, (tuple, list)) or any(
+                isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in widths
+            ):
+                raise ValueError(f"FlowConfig.{name} must be positive integer widths, got {widths!r}")
+            object.__setattr__(self, name, tuple(widths))
         for name in ("transforms", "bins", "ensemble"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"FlowConfig.{name} must be an integer >= 1, got {v!r}")
         if self.bins < 2:
             raise ValueError(f"FlowConfig.bins must be >= 2, got {self.bins}")
-        if not self.hidden_features or any(h < 1 for h in self.hidden_features):
-            raise ValueError(f"FlowConfig.hidden_features must be positive widths, got {self.hidden_features}")
+        if not self.hidden_features:
+            raise ValueError(f"FlowConfig.hidden_features must hold at least one width, got {self.hidden_features}")
         if self.passes is not None and (
             isinstance(self.passes, bool) or not isinstance(self.passes, int) or self.passes < 1
         ):

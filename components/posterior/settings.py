@@ -41,6 +41,12 @@ def _every_field(cls: type, settings: dict[str, Any]) -> dict[str, Any]:
     return settings
 
 
+def _check_positive(name: str, value: object) -> None:
+    """``ValueError`` naming ``name`` unless ``value`` is a positive integer (bool refused)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+
+
 def small_data_scale(train_section: TrainConfig, size: int) -> float:
     """s = max(1, ``train.scale_to`` / size): how much smaller than ``scale_to`` the training set is.
 
@@ -48,8 +54,7 @@ def small_data_scale(train_section: TrainConfig, size: int) -> float:
     optimizer steps) through a flow whose hidden widths shrink as 1/√s (fewer weights to fit): the rule measured on
     three SBI problems with exact posteriors (``benchmarks/bench_sbi_problems.py``, BENCHMARKS.md). At and above
     ``scale_to`` images the settings are ``train``'s as written."""
-    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
-        raise ValueError(f"size must be a positive integer, got {size!r}")
+    _check_positive("size", size)
     return max(1.0, train_section.scale_to / size)
 
 
@@ -69,8 +74,7 @@ def ensemble_for(train_section: TrainConfig, size: int) -> int:
     of each one's idiosyncratic overconfidence and sharpen the posterior where the data suffice: on the 50k cues
     (one seed, the whole test split) 6.68 → 7.08 nats with calibration error 0.019 → 0.034 without input noise
     (BENCHMARKS.md, "An ensemble of flows at 50k")."""
-    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
-        raise ValueError(f"size must be a positive integer, got {size!r}")
+    _check_positive("size", size)
     return train_section.flow.ensemble if size >= train_section.ensemble_min_size else 1
 
 
@@ -135,9 +139,8 @@ def input_noise_for(
     erases the signal instead: on the SBI problems' 2–10 inputs it took the classifier two-sample accuracy at 1k
     simulations from 0.73–0.75 to 0.86–0.96 (BENCHMARKS.md, "The SBI problems with today's defaults"), hence the
     floor on the number of features."""
-    for name, value in (("size", size), ("features", features)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    _check_positive("size", size)
+    _check_positive("features", features)
     if trainable or size > train_section.input_noise_max_size or features < train_section.input_noise_min_features:
         return 0.0
     k = ensemble_for(train_section, size) if ensemble is None else ensemble
@@ -168,8 +171,8 @@ def training_config(
     ensemble: int | None = None,
 ) -> TrainingConfig:
     """The training settings of ``train`` for a model of ``size`` training images of ``features`` input features
-    (the backbone's dimension): :func:`epochs_for` epochs, :func:`input_noise_for` noise; ``seed`` is the caller's; ``balance`` and ``ensemble`` (a variant's) replace
-    ``train.balance`` and the flows of :func:`ensemble_for`."""
+    (the backbone's dimension): :func:`epochs_for` epochs, :func:`input_noise_for` noise; ``seed`` is the caller's;
+    ``balance`` and ``ensemble`` (a variant's) replace ``train.balance`` and the flows of :func:`ensemble_for`."""
     t = train_section
     return TrainingConfig(
         **_every_field(

@@ -15,6 +15,8 @@ Levers (``--setting NAME``, several allowed):
 * ``cues-v3-<n>``: all 273 cues of version 3 (the cache of today's ``cues``);
 * ``cues-v3+tiny-<n>``: those joined by the 256 features of the ``tiny`` backbone's cache (its 8×8 L*a*b* thumbnail
   and per-cell contrast: where the light falls, finer than the cues' 4×4 grid; ``dvc repro features@tiny``);
+* ``cues-v3+sky<r>-<n>``: the cues joined by the L*a*b* of the thumbnail's upper ``r`` lattice rows only (24·r
+  features of the ``tiny`` cache; ``r`` from 1 to 8; the sky and the horizon for ``r`` ≤ 3);
 * ``…-e<k>``: ``k`` epochs instead of the pipeline's (``params.yaml`` ``train`` with its sample budget);
 * ``…-ens<k>``: an equal-weight ensemble of ``k`` flows;
 * ``…-c<w>x<w>…``: a context network of these widths before the flows (``train.flow.context_layers``), ``-c0``: none;
@@ -68,7 +70,7 @@ from components.posterior.temperature import calibrate  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 
 _SETTING = re.compile(
-    r"^cues-(v1|v2|v3)(\+tiny)?-(\d+)(?:-ens(\d+))?(?:-c(0|\d+(?:x\d+)*))?(?:-e(\d+))?(?:-lr(\d+(?:\.\d+)?(?:e-?\d+)?))?"
+    r"^cues-(v1|v2|v3)(\+tiny|\+sky[1-8])?-(\d+)(?:-ens(\d+))?(?:-c(0|\d+(?:x\d+)*))?(?:-e(\d+))?(?:-lr(\d+(?:\.\d+)?(?:e-?\d+)?))?"
     r"(?:-wd(\d+(?:\.\d+)?(?:e-?\d+)?))?(?:-n([0-9.]+))?(-m)?(-t)?$"
 )
 #: the leading columns of today's cues cache that each cue version computed
@@ -76,19 +78,20 @@ COLUMNS = {"v1": 80, "v2": 241, "v3": None}
 
 
 def parse_setting(name: str) -> dict:
-    """``cues-v2-50000-ens3-c256x128-e20-t`` → {version, tiny, size, ensemble, context_layers, epochs, lr,
+    """``cues-v2-50000-ens3-c256x128-e20-t`` → {version, tiny, sky_rows, size, ensemble, context_layers, epochs, lr,
     weight_decay, noise, mirror, temperature} (``context_layers``, ``lr``, ``weight_decay`` None: the pipeline's);
     ``ValueError`` naming the grammar otherwise."""
     m = _SETTING.match(name)
     if not m:
         raise ValueError(
             f"setting {name!r}: expected "
-            "cues-(v1|v2|v3)[+tiny]-<size>[-ens<k>][-c<w>x<w>…|-c0][-e<epochs>][-lr<lr>][-wd<decay>][-n<σ>][-m][-t]"
+            "cues-(v1|v2|v3)[+tiny|+sky<rows>]-<size>[-ens<k>][-c<w>x<w>…|-c0][-e<epochs>][-lr<lr>][-wd<decay>][-n<σ>][-m][-t]"
         )
     v, tiny, size, ens, ctx, ep, lr, wd, noise, mirror, temp = m.groups()
     return {
         "version": v,
-        "tiny": bool(tiny),
+        "tiny": tiny == "+tiny",
+        "sky_rows": int(tiny[4:]) if tiny and tiny.startswith("+sky") else 0,
         "size": int(size),
         "ensemble": int(ens or 1),
         "context_layers": None if ctx is None else () if ctx == "0" else tuple(int(w) for w in ctx.split("x")),
@@ -107,10 +110,13 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
     splits = {k: dataset.open_split(root / params.data.root, k) for k in dataset.SPLITS}
     cols = COLUMNS[s["version"]]
 
+    joined = tiny_columns(s)
+
     def feats(split: dataset.Split, stop: int | None = None) -> np.ndarray:
         cues = cache.open_features(root / "features", "cues", split, stop=stop)[:, :cols]
-        if s["tiny"]:
-            cues = np.concatenate([cues, cache.open_features(root / "features", "tiny", split, stop=stop)], axis=1)
+        if joined is not None:
+            tiny = cache.open_features(root / "features", "tiny", split, stop=stop)[:, joined]
+            cues = np.concatenate([cues, tiny], axis=1)
         return cues.astype(np.float32)
 
     x = {"train": feats(splits["train"], s["size"]), "val": feats(splits["val"]), "test": feats(splits["test"])}
@@ -132,7 +138,7 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
         (torch.from_numpy(x["train"]), torch.from_numpy(theta["train"])),
         (torch.from_numpy(x["val"]), torch.from_numpy(theta["val"])),
         tc,
-        mirror=mirror_map(s["version"], s["tiny"]) if s["mirror"] else None,
+        mirror=mirror_map(s["version"], joined) if s["mirror"] else None,
     )
     model.eval()
     tempered = calibrate(model, torch.from_numpy(x["val"]), torch.from_numpy(theta["val"])) if s["temperature"] else {}
@@ -149,15 +155,29 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
     }
 
 
-def mirror_map(version: str, tiny: bool):
+def tiny_columns(setting: dict) -> np.ndarray | None:
+    """The columns of the ``tiny`` cache joined to the cues: all of them (``+tiny``), the L*a*b* blocks' upper
+    ``sky_rows`` lattice rows (``+sky<r>``), or none."""
+    if setting["tiny"]:
+        return np.arange(TinyImagesBackbone().dim)
+    if setting["sky_rows"]:
+        g = TinyImagesBackbone().grid
+        return np.arange(4 * g * g).reshape(4, g, g)[:3, : setting["sky_rows"]].ravel()  # L*, a*, b*; not contrast
+    return None
+
+
+def mirror_map(version: str, tiny: np.ndarray | None):
     """The inputs of the mirrored images as a map of a batch of inputs: the cues' permutation
-    (:data:`components.features.backbones.cues.MIRROR`) on the version's columns, joined by the ``tiny`` one's."""
+    (:data:`components.features.backbones.cues.MIRROR`) on the version's columns, joined by the ``tiny`` one's on its
+    columns ``tiny`` (:func:`tiny_columns`; a lattice row mirrors onto itself)."""
     cols = COLUMNS[version] or len(MIRROR)
     index = list(MIRROR[:cols])
     if max(index) >= cols:
         raise ValueError(f"cues-{version}: the mirror permutation leaves its {cols} columns")
-    if tiny:
-        index += [cols + i for i in TinyImagesBackbone().mirror_index()]
+    if tiny is not None:
+        position = {int(c): k for k, c in enumerate(tiny)}
+        mirrored = TinyImagesBackbone().mirror_index()
+        index += [cols + position[mirrored[int(c)]] for c in tiny]
     perm = torch.tensor(index)
     return lambda x: x[:, perm]
 

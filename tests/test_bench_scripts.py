@@ -14,7 +14,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_levers import mirror_map, parse_setting  # noqa: E402
+from benchmarks.bench_levers import mirror_map, parse_setting, tiny_columns  # noqa: E402
 from benchmarks.bench_scale import FullResolutionCNN, _parse, render_split  # noqa: E402
 from components.core.config import load_params  # noqa: E402
 from components.features.backbones import get_backbone  # noqa: E402
@@ -27,6 +27,7 @@ def test_levers_settings_grammar() -> None:
     assert s == {
         "version": "v3",
         "tiny": True,
+        "sky_rows": 0,
         "size": 50000,
         "ensemble": 2,
         "context_layers": None,
@@ -38,12 +39,22 @@ def test_levers_settings_grammar() -> None:
         "temperature": True,
     }
     assert parse_setting("cues-v1-5000")["tiny"] is False
+    sky = parse_setting("cues-v3+sky3-50000-n0.094-t")
+    assert (sky["tiny"], sky["sky_rows"]) == (False, 3)
     assert parse_setting("cues-v3-20000-n0.106-m-t")["mirror"] is True
     assert parse_setting("cues-v3-50000-c256x256x128-n0.094-t")["context_layers"] == (256, 256, 128)
     assert parse_setting("cues-v3-50000-c0-t")["context_layers"] == ()
     tuned = parse_setting("cues-v3-50000-e48-lr2e-3-wd0.001-n0.094-t")
     assert (tuned["epochs"], tuned["lr"], tuned["weight_decay"], tuned["noise"]) == (48, 2e-3, 1e-3, 0.094)
-    bad_names = ("cues-v4-5000", "cues-v3-tiny-5000", "tiny-v3-5000", "cues-v3-5000-x", "cues-v3-5000-t-m")
+    bad_names = (
+        "cues-v4-5000",
+        "cues-v3+sky9-5000",
+        "cues-v3+sky-5000",
+        "cues-v3-tiny-5000",
+        "tiny-v3-5000",
+        "cues-v3-5000-x",
+        "cues-v3-5000-t-m",
+    )
     for bad in (*bad_names, "cues-v3-5000-c256x", "cues-v3-5000-t-c0", "cues-v3-5000-wd0.1-lr0.1", "cues-v3-5000-lr-"):
         with pytest.raises(ValueError, match="expected cues-"):
             parse_setting(bad)
@@ -61,9 +72,19 @@ def test_levers_mirror_map_is_the_features_of_the_mirrored_images() -> None:
     def joined(x: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.concatenate([get_backbone(b).extract(x) for b in ("cues", "tiny")], axis=1))
 
-    np.testing.assert_allclose(mirror_map("v3", True)(joined(images)), joined(mirrored), rtol=1e-3, atol=2e-3)
+    every = tiny_columns(parse_setting("cues-v3+tiny-5000"))
+    np.testing.assert_allclose(mirror_map("v3", every)(joined(images)), joined(mirrored), rtol=1e-3, atol=2e-3)
+    sky = tiny_columns(parse_setting("cues-v3+sky3-5000"))  # the L*a*b* of the upper three lattice rows
+    assert len(sky) == 72
+
+    def joined_sky(x: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(
+            np.concatenate([get_backbone("cues").extract(x), get_backbone("tiny").extract(x)[:, sky]], 1)
+        )
+
+    np.testing.assert_allclose(mirror_map("v3", sky)(joined_sky(images)), joined_sky(mirrored), rtol=1e-3, atol=2e-3)
     v1 = torch.arange(80.0)[None]  # the version-1 columns mirror among themselves (edge orientations)
-    assert sorted(mirror_map("v1", False)(v1)[0].tolist()) == v1[0].tolist()
+    assert sorted(mirror_map("v1", None)(v1)[0].tolist()) == v1[0].tolist()
 
 
 def test_scale_models_grammar() -> None:

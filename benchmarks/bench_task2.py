@@ -12,9 +12,10 @@ registry model's contexts once, and scores with :func:`components.domains.task2.
   becomes a flat likelihood); a Gaussian mixture G fitted by XD's EM in physical units with 1…6 components chosen by
   5-fold held-out likelihood, components kept inside the box and no broader than the prior, truncated to the box.
 
-Then the **width floor** of the mixture: each image's posterior draws moved so that their median is the image's true θ
-(no bias left, only the posteriors' widths), their deviations scaled by 1, 0.8 and 0.6; the W₁ ratio of that mixture
-says how sharp the per-image posteriors must be for the W₁ target even without any bias (``--no-floor`` skips it).
+Then the **width floor** of the mixture (:func:`components.domains.task2.width_floor`, as the stage reports it): each
+image's posterior draws moved so that their median is the image's true θ (no bias left, only the posteriors' widths),
+their deviations scaled by ``task2.width_floor.scales``; the W₁ ratio of that mixture says how sharp the per-image
+posteriors must be for the W₁ target even without any bias (``--no-floor`` skips it).
 
 Needs the pipeline's registry/ (``dvc repro evaluate`` at least).
 
@@ -44,13 +45,10 @@ from components.core import seeding  # noqa: E402
 from components.core.config import load_params  # noqa: E402
 from components.domains import task2 as task2_  # noqa: E402
 from components.domains.absolute import Domain  # noqa: E402
-from components.domains.distances import wasserstein_1d  # noqa: E402
 from components.export.lookup import load_registered, read_champion  # noqa: E402
 from components.simulate.base import make_simulator  # noqa: E402
 
 ESTIMATES = ("mixture", "em", "xd", "xd-prior")
-FLOOR_SCALES = (1.0, 0.8, 0.6)
-FLOOR_DRAWS = 64
 XD_COMPONENTS = (1, 2, 3, 4, 6)
 XD_STEPS = 150
 POSTERIOR_DRAWS = 64
@@ -165,26 +163,6 @@ def extreme_deconvolution(domain: Domain, params, divide_prior: bool, seed: int)
     return BoxedMixture(*fit, box.low, box.high), {"components": best, "held_out": held_out}
 
 
-def width_floor(posterior, contexts, theta, params, scales=FLOOR_SCALES, draws: int = FLOOR_DRAWS) -> dict:
-    """W₁ ratios (estimate/prior, per parameter) of the mixture whose image i's ``draws`` posterior draws are moved to
-    θᵢ + s·(draw − median), clipped to the box, for each scale s; also the median over images of the posterior
-    standard deviation per parameter (physical units) at s = 1. The truth's and the prior's draws are those of
-    :func:`components.domains.task2.task2_metrics` (same seeds)."""
-    draws_ = posterior.sample(contexts, draws, seeding.derive_seed(params.seed, "task2", "floor"))  # (n, draws, d)
-    deviation = draws_ - np.median(draws_, axis=1, keepdims=True)
-    t = params.task2
-    truth = task2_.true_distribution(params).sample(t.samples, seeding.rng(params.seed, "task2", "truth"))
-    prior = params.box.sample(seeding.rng(params.seed, "task2", "prior"), t.samples)
-    w_prior = wasserstein_1d(prior, truth)
-    lo, hi = params.box.low, params.box.high
-    ratios = {}
-    for s in scales:
-        moved = np.clip(theta[:, None, :] + s * deviation, lo, hi).reshape(-1, theta.shape[1])
-        ratios[s] = dict(zip(params.box.names, (wasserstein_1d(moved, truth) / w_prior).round(3).tolist(), strict=True))
-    sd = dict(zip(params.box.names, np.median(draws_.std(axis=1), axis=0).round(2).tolist(), strict=True))
-    return {"wasserstein_ratio": ratios, "posterior_sd_median": sd}
-
-
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--params", default=str(ROOT / "params.yaml"))
@@ -235,7 +213,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{'':10s} " + " ".join(f"{r['median'][n]:12.1f}" for n in names) + "  (medians)")
     floor = None
     if not args.no_floor:
-        floor = width_floor(domain.posterior, domain.bag, theta, params)
+        floor = task2_.width_floor(domain.posterior, domain.bag, theta, params)
         print("width floor: the mixture with each posterior moved onto its image's truth, deviations × s (W₁ ratio)")
         for s, r in floor["wasserstein_ratio"].items():
             print(f"{'s = ' + str(s):10s} " + " ".join(f"{r[n]:12.3f}" for n in names))

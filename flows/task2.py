@@ -64,7 +64,7 @@ def task2(params_path: str = "params.yaml") -> dict:
     pointer = read_champion(paths.registry) if t.model in tracking.ALIASES else None
     folder = tracking.registered_folder(paths.root, params, t.model, pointer)  # models:/pidc@champion
     model = load_registered(folder or t.model, paths.registry, threads=os.cpu_count() or 1)
-    _, images = render_bag(str(stage.params_file))
+    theta, images = render_bag(str(stage.params_file))
     contexts = model.posterior.context(model.inputs(images))  # the embedding runs once per image
     domain = Domain(model.posterior.on_context(), contexts)  # equally weighted bag
     characterization, how = task2_.characterize(domain, params)
@@ -75,6 +75,7 @@ def task2(params_path: str = "params.yaml") -> dict:
         metrics["deconvolution"] = how
         metrics["mixture"], mixture, _, _ = task2_.task2_metrics(domain, params, model.name)
         del metrics["mixture"]["model"]
+    metrics["width_floor"] = task2_.width_floor(domain.posterior, contexts, theta, params)
 
     labels = ("ground truth P_D(W)", f"estimate P̂_D(W), {t.estimate}")
     figures = [

@@ -123,33 +123,3 @@ def test_full_resolution_cnn_shapes() -> None:
     images = torch.randint(0, 256, (3, 128, 128, 3), dtype=torch.uint8)
     out = cnn(images)
     assert out.shape == (3, 16) and bool(torch.isfinite(out).all())
-
-
-class _GaussianPosterior:
-    """q(θ | x) = 𝒩(x, σ²I) with x the true θ: an unbiased posterior of known width (its draws inside the box)."""
-
-    def __init__(self, sd: float) -> None:
-        self.sd = sd
-
-    def sample(self, x: np.ndarray, n: int, seed: int) -> np.ndarray:
-        rng = np.random.default_rng(seed)
-        return x[:, None, :] + self.sd * rng.standard_normal((x.shape[0], n, x.shape[1]))
-
-
-def test_task2_width_floor_grows_with_the_posteriors_width() -> None:
-    """The width floor of Task II's mixture: with point-mass posteriors it is the bag's own sampling distance to the
-    truth (small), and it grows with the posteriors' width and shrinks with the scale s."""
-    from benchmarks.bench_task2 import width_floor
-    from components.core import seeding
-    from components.domains import task2 as task2_
-
-    params = load_params(ROOT / "params.yaml")
-    theta = task2_.true_distribution(params).sample(400, seeding.rng(0, "test", "bag"))
-    sharp = width_floor(_GaussianPosterior(0.0), theta, theta, params, scales=(1.0,), draws=4)
-    broad = width_floor(_GaussianPosterior(8.0), theta, theta, params, scales=(1.0, 0.5), draws=32)
-    for name in ("fog_density", "precipitation"):
-        assert sharp["wasserstein_ratio"][1.0][name] < 0.15  # 400 true draws against the truth
-        assert broad["wasserstein_ratio"][1.0][name] > broad["wasserstein_ratio"][0.5][name]
-        assert broad["wasserstein_ratio"][0.5][name] > sharp["wasserstein_ratio"][1.0][name]
-        assert broad["posterior_sd_median"][name] == pytest.approx(8.0, rel=0.15)  # unclipped where the modes lie
-    assert sharp["posterior_sd_median"]["precipitation"] == 0.0

@@ -237,6 +237,13 @@ def test_unknown_key_is_named():
         (lambda d: d["export"].update(exporter="tf"), r"export\.exporter"),
         (lambda d: d["task2"]["fixed"].pop("cloudiness"), r"task2\.fixed: .*must give exactly"),
         (lambda d: d["task2"]["modes"][0].update(std=[0, 1]), r"task2\.modes\.0\.std"),
+        (lambda d: d["task2"]["width_floor"].update(draws=1), r"task2\.width_floor\.draws: Input should be greater"),
+        (
+            lambda d: d["task2"]["width_floor"].update(scales=[1.0, 0]),
+            r"task2\.width_floor\.scales\.1: Input should be",
+        ),
+        (lambda d: d["task2"]["width_floor"].update(scales=[]), r"task2\.width_floor\.scales: .*at least 1"),
+        (lambda d: d["task2"].pop("width_floor"), r"task2\.width_floor: missing key"),
         (
             lambda d: d["task3"]["bags"]["b0"]["box"].update(sun_altitude_angle=[-90, 30]),
             r"bags\.b0\.box overlaps bags\.b1\.box",

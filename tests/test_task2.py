@@ -14,7 +14,7 @@ from components.core.config import parse_params
 from components.core.seeding import rng
 from components.domains.absolute import Domain
 from components.domains.distances import energy_distance_sq, marginal_hdr, wasserstein_1d
-from components.domains.task2 import render_bag, task2_metrics, true_distribution
+from components.domains.task2 import render_bag, task2_metrics, true_distribution, width_floor
 from tests.conftest import micro_params
 from tests.test_domain import GaussianPosterior
 
@@ -104,6 +104,32 @@ def test_task2_metrics_score_a_sharp_estimate_better_than_a_broad_one(sigma):
     else:
         assert 0.2 < energy["all"]["ratio"] < 1.0
         assert all(per[n]["hdr_width"] > 40 for n in fixed), "broad: HDRs tens of units wide"
+
+
+def test_width_floor_grows_with_the_posteriors_width():
+    """The width floor: with (nearly) point-mass posteriors around the true θ it is the bag's own sampling distance to
+    the truth (sampling noise: ~0.1–0.2 of the prior's distance here); with unbiased posteriors of σ = 8 it is larger,
+    it falls with the scale s, and the reported posterior standard deviation is σ where the free parameters' modes
+    lie (inside the box)."""
+    params = _params()
+    theta = true_distribution(params).sample(1000, rng(3, "test", "task2", "floor"))
+    sharp = width_floor(GaussianPosterior(1e-6), theta, theta, params)
+    broad = width_floor(GaussianPosterior(8.0), theta, theta, params)
+    assert params.task2.width_floor.scales == (1.0, 0.8, 0.6)
+    assert set(broad["wasserstein_ratio"]) == {"1", "0.8", "0.6"} and broad["draws"] == params.task2.width_floor.draws
+    for name in ("fog_density", "precipitation"):
+        r, r0 = broad["wasserstein_ratio"], sharp["wasserstein_ratio"]["1"][name]
+        assert r0 < 0.25, (name, r0)  # 1 000 true draws against 2 000 of the truth: sampling noise only
+        assert r["1"][name] > r["0.8"][name] > r["0.6"][name] > r0, name
+        assert broad["posterior_sd_median"][name] == pytest.approx(8.0, rel=0.05)
+        assert sharp["posterior_sd_median"][name] < 1e-5
+
+
+def test_width_floor_refuses_draws_of_the_wrong_shape():
+    params = _params()
+    theta = true_distribution(params).sample(10, rng(3, "test", "task2", "floor"))
+    with pytest.raises(ValueError, match="posterior draws have shape"):
+        width_floor(GaussianPosterior(1.0), theta[:, :5], theta, params)
 
 
 class _Recorder:

@@ -283,6 +283,16 @@ class DeconvolutionConfig(_Section):
     folds: Annotated[int, Field(ge=2)]
 
 
+class WidthFloorConfig(_Section):
+    """Task II's width floor (:func:`components.domains.task2.width_floor`): the mixture with each image's posterior
+    moved onto the image's true θ, its spread scaled by each of ``scales``."""
+
+    #: posterior draws per bag image
+    draws: Annotated[int, Field(ge=2)]
+    #: the spread's scale factors s (1 = the posteriors' own widths)
+    scales: tuple[Annotated[float, Field(gt=0)], ...] = Field(min_length=1)
+
+
 class Task2Config(_Section):
     """Task II: a bag of rendered images whose weather follows a known distribution → its characterization."""
 
@@ -306,6 +316,7 @@ class Task2Config(_Section):
     #: weather distribution of the bag (the mixture's figures are then reported beside it)
     estimate: Literal["mixture", "deconvolved"]
     deconvolution: DeconvolutionConfig
+    width_floor: WidthFloorConfig
 
     @field_validator("fixed")
     @classmethod

@@ -12,7 +12,9 @@ Domain`) is compared with the true distribution P_𝒟(θ), and with the uniform
 * per parameter, in its physical unit: W₁ estimate→truth and prior→truth (sharpness *and* location: a broad estimate
   scores near the prior), the width of the estimate's marginal ``hdr_level`` HDR and the share of the true mass in it;
 * the share of the true mass inside the estimate's joint ``hdr_level`` HDR, and the estimate's density at the true
-  modes.
+  modes;
+* the width floor (:func:`width_floor`): the W₁ ratios of the mixture whose posteriors are moved onto their images'
+  true θ — what the per-image posteriors' widths alone allow, with no bias.
 
 The estimate is ``task2.estimate``: the mixture itself, or its deconvolution (:func:`characterize`,
 :mod:`components.domains.deconvolution`: the bag's maximum-likelihood weather distribution, of which the mixture is the
@@ -171,3 +173,39 @@ def task2_metrics(domain, params: Params, model_name: str) -> tuple[dict, np.nda
         "parameters": per_parameter,
     }
     return metrics, estimate, truth, prior
+
+
+def width_floor(posterior, contexts: np.ndarray, theta: np.ndarray, params: Params) -> dict:
+    """What the posteriors' widths alone allow: the W₁ ratios (estimate/prior, per parameter) of the mixture whose
+    image i contributes θᵢ + s·(draw − median of its draws), clipped to the box, for each s of
+    ``task2.width_floor.scales`` — no bias left, the spread scaled by s (s = 1: the posteriors' own widths).
+
+    Arguments:
+        posterior: ``sample(contexts, n, seed) → (N, n, d)`` draws in physical units (a registry model's
+            ``posterior.on_context()``).
+        contexts: the bag's ``(N, …)`` contexts; theta: their true weather ``(N, d)``.
+
+    Returns ``{"draws", "wasserstein_ratio": {f"{s:g}": {parameter: ratio}}, "posterior_sd_median": {parameter: the
+    median over images of the posterior standard deviation, physical units}}``; the truth's and the prior's draws are
+    those of :func:`task2_metrics` (the same seeds), so ``s`` → 0 leaves the bag's own sampling distance.
+    """
+    c, t, box = params.task2.width_floor, params.task2, params.box
+    theta = np.asarray(theta, dtype=np.float64)
+    draws = np.asarray(posterior.sample(contexts, c.draws, seeding.derive_seed(params.seed, "task2", "width-floor")))
+    if draws.shape != (theta.shape[0], c.draws, theta.shape[1]):
+        raise ValueError(
+            f"posterior draws have shape {draws.shape}, expected {(theta.shape[0], c.draws, theta.shape[1])}"
+        )
+    spread = draws - np.median(draws, axis=1, keepdims=True)
+    truth = true_distribution(params).sample(t.samples, seeding.rng(params.seed, "task2", "truth"))
+    w_prior = wasserstein_1d(box.sample(seeding.rng(params.seed, "task2", "prior"), t.samples), truth)
+    ratios = {}
+    for scale in c.scales:
+        moved = np.clip(theta[:, None, :] + scale * spread, box.low, box.high).reshape(-1, theta.shape[1])
+        ratios[f"{scale:g}"] = dict(zip(box.names, (wasserstein_1d(moved, truth) / w_prior).tolist(), strict=True))
+    sd = np.median(draws.std(axis=1), axis=0)
+    return {
+        "draws": c.draws,
+        "wasserstein_ratio": ratios,
+        "posterior_sd_median": dict(zip(box.names, sd.tolist(), strict=True)),
+    }

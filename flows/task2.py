@@ -35,10 +35,13 @@ def render_bag(params_path: str) -> tuple[np.ndarray, np.ndarray]:
     return task2_.render_bag(params, make_simulator(params.simulator))
 
 
-def _note(row: dict) -> str:
+def _note(row: dict, floor: float) -> str:
+    """A parameter's panel title: W₁ estimate→truth against the prior's and their ratio, the ratio of the mixture
+    with no bias left (``floor``: :func:`components.domains.task2.width_floor` at s = 1), the marginal HDR."""
     unit = "°" if row["unit"] == "deg" else row["unit"]
     return (
-        f"W₁ to the truth {row['wasserstein_estimate']:.3g} {unit} (prior {row['wasserstein_prior']:.3g} {unit})\n"
+        f"W₁ to the truth {row['wasserstein_estimate']:.3g} {unit} (prior {row['wasserstein_prior']:.3g} {unit}): "
+        f"ratio {row['wasserstein_ratio']:.2f}\nwith no bias (the posteriors' widths alone): {floor:.2f}\n"
         f"HDR {row['hdr_width']:.3g} {unit} wide, holds {100 * row['true_mass_in_hdr']:.0f} % of the truth"
     )
 
@@ -93,7 +96,10 @@ def task2(params_path: str = "params.yaml") -> dict:
                 estimate,
                 prior,
                 box=params.box,
-                notes=[_note(r) for r in metrics["parameters"].values()],
+                notes=[
+                    _note(r, metrics["width_floor"]["wasserstein_ratio"]["1"][n])
+                    for n, r in metrics["parameters"].items()
+                ],
                 title=f"Task II ({model.name}): marginals of the truth, the {t.estimate} estimate and the prior "
                 f"({100 * t.hdr_level:.0f} % HDR)",
                 reference=mixture,

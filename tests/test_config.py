@@ -243,6 +243,7 @@ def test_unknown_key_is_named():
             r"task2\.width_floor\.scales\.1: Input should be",
         ),
         (lambda d: d["task2"]["width_floor"].update(scales=[]), r"task2\.width_floor\.scales: .*at least 1"),
+        (lambda d: d["task2"]["width_floor"].update(scales=[0.8]), r"task2\.width_floor\.scales: .*must include 1"),
         (lambda d: d["task2"].pop("width_floor"), r"task2\.width_floor: missing key"),
         (
             lambda d: d["task3"]["bags"]["b0"]["box"].update(sun_altitude_angle=[-90, 30]),

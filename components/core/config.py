@@ -289,8 +289,15 @@ class WidthFloorConfig(_Section):
 
     #: posterior draws per bag image
     draws: Annotated[int, Field(ge=2)]
-    #: the spread's scale factors s (1 = the posteriors' own widths)
+    #: the spread's scale factors s (1 = the posteriors' own widths, required: the report and its plot show it)
     scales: tuple[Annotated[float, Field(gt=0)], ...] = Field(min_length=1)
+
+    @field_validator("scales")
+    @classmethod
+    def _own_widths(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if 1.0 not in v:
+            raise ValueError(f"must include 1 (the posteriors' own widths), got {list(v)}")
+        return v
 
 
 class Task2Config(_Section):

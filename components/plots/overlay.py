@@ -57,7 +57,7 @@ def marginals_overlay(
         raise ValueError(f"notes must hold one string per parameter ({N_THETA}), got {len(notes)}")
     if not (isinstance(bins, (int, np.integer)) and bins >= 2):
         raise ValueError(f"bins must be an integer >= 2, got {bins!r}")
-    fig = new_figure(12.0, 7.0)
+    fig = new_figure(12.0, 7.5)
     axes = fig.subplots(2, 3)
     for k, ax in enumerate(axes.ravel()):
         edges = np.linspace(b.low[k], b.high[k], bins + 1)
@@ -71,7 +71,7 @@ def marginals_overlay(
         ax.set_xlim(b.low[k], b.high[k])
         ax.set_xlabel(parameter_label(k))
         ax.set_ylabel(f"density [1/{unit_symbol(PREDICTED[k])}]")
-        ax.ticklabel_format(axis="y", style="sci", scilimits=(-2, 3))
+        ax.ticklabel_format(axis="y", style="plain")  # no offset text: it would collide with a multi-line title
         if notes is not None:
             ax.set_title(notes[k], fontsize=9)
         ax.grid(alpha=0.25)

@@ -118,11 +118,14 @@ def train_model(
     else:
         model = NPE(None, backbone.dim, params.box, flow_cfg, seed=model_seed)
 
-    # a checkpoint belongs to one configuration: a params change starts afresh instead of failing
+    # a checkpoint belongs to one configuration: a params change, new data or a new version of the backbone's
+    # features (their fingerprint) starts afresh instead of failing on the checkpoint's data fingerprint
     data_hash = splits["train"].content_hash
     run_key = hashlib.sha256(
         json.dumps(
-            [asdict(cfg), asdict(flow_cfg), model_seed, data_hash, options], sort_keys=True, default=str
+            [asdict(cfg), asdict(flow_cfg), model_seed, data_hash, options, features.output_fingerprint(backbone)],
+            sort_keys=True,
+            default=str,
         ).encode()
     ).hexdigest()[:12]
     checkpoint = out / f"checkpoint-{run_key}.pt"

@@ -27,9 +27,9 @@ from components.features.backbones import EMBEDDED, PRETRAINED, Backbone, availa
 
 SEED = 2026
 N = 6
-#: the documented feature sizes: cues 273, tiny 4·grid² (grid 8), cnn 64 by default; the pretrained ones read theirs
+#: the documented feature sizes: cues 345, tiny 4·grid² (grid 8), cnn 64 by default; the pretrained ones read theirs
 #: from the checkpoint's config (tiny checkpoints of conftest: ResNet hidden_sizes[-1] = 16, ViT hidden_size = 32)
-DIMS = {"cues": 273, "tiny": 256, "cnn": 64, "resnet50": 16, "dinov2": 32, "clip": 32}
+DIMS = {"cues": 345, "tiny": 256, "cnn": 64, "resnet50": 16, "dinov2": 32, "clip": 32}
 #: batch invariance tolerance: batched matmuls/convolutions may sum in another order for another batch size
 #: (float32 rounding, ~1e-7 relative per operation, accumulated over a few layers), so features agree to 1e-5
 #: relative to the feature scale, not bit for bit (measured: at most 6e-7, cnn one image at a time)

@@ -136,12 +136,12 @@ def test_single_image_is_a_batch_of_one(textures: np.ndarray) -> None:
 # -- cues -----------------------------------------------------------------------------------------------
 def test_cues_names_match_dim() -> None:
     b = get_backbone("cues")
-    assert b.dim == len(FEATURE_NAMES) == len(set(FEATURE_NAMES)) == 273
+    assert b.dim == len(FEATURE_NAMES) == len(set(FEATURE_NAMES)) == 345
 
 
 def test_cues_mirror_symmetry(textures: np.ndarray) -> None:
-    """A left-right flip reverses edge orientation (bin k ↔ −k), mirrors the 4×4 grid's columns and swaps the left and
-    right walls, and leaves every other cue unchanged."""
+    """A left-right flip reverses edge orientation (bin k ↔ −k), mirrors the 4×4 grid's and the 8-column sky
+    thumbnail's columns and swaps the left and right walls, and leaves every other cue unchanged."""
     b = get_backbone("cues")
     f = b.extract(textures)
     g = b.extract(np.ascontiguousarray(textures[:, :, ::-1]))
@@ -154,6 +154,10 @@ def test_cues_mirror_symmetry(textures: np.ndarray) -> None:
         for r in range(4):
             for c in range(4):
                 perm[FEATURE_NAMES.index(f"{prefix}{r}{c}")] = FEATURE_NAMES.index(f"{prefix}{r}{3 - c}")
+    for ch in "Lab":
+        for r in range(3):
+            for c in range(8):
+                perm[FEATURE_NAMES.index(f"sky_lab_{ch}_{r}{c}")] = FEATURE_NAMES.index(f"sky_lab_{ch}_{r}{7 - c}")
     for q in (10, 50, 90):
         left, right = FEATURE_NAMES.index(f"left_wall_log_y_q{q}"), FEATURE_NAMES.index(f"right_wall_log_y_q{q}")
         perm[left], perm[right] = right, left
@@ -255,7 +259,7 @@ def test_mirror_inputs_flip_a_trainable_backbones_images_and_refuse_what_cannot_
     np.testing.assert_array_equal(cnn.mirror_inputs(x).numpy(), mirrored.numpy())
     with pytest.raises(ValueError, match="expects model inputs"):
         cnn.mirror_inputs(x.flatten(1))
-    with pytest.raises(ValueError, match=r"expects features \(n, 273\)"):
+    with pytest.raises(ValueError, match=r"expects features \(n, 345\)"):
         get_backbone("cues").mirror_inputs(torch.zeros(2, 7))
 
     class Opaque(Backbone):  # frozen features with no known symmetry (as a pretrained network's)

@@ -47,7 +47,7 @@ def test_levers_settings_grammar() -> None:
     tuned = parse_setting("cues-v3-50000-e48-lr2e-3-wd0.001-n0.094-t")
     assert (tuned["epochs"], tuned["lr"], tuned["weight_decay"], tuned["noise"]) == (48, 2e-3, 1e-3, 0.094)
     bad_names = (
-        "cues-v4-5000",
+        "cues-v5-5000",
         "cues-v3+sky9-5000",
         "cues-v3+sky-5000",
         "cues-v3-tiny-5000",
@@ -73,16 +73,21 @@ def test_levers_mirror_map_is_the_features_of_the_mirrored_images() -> None:
         return torch.from_numpy(np.concatenate([get_backbone(b).extract(x) for b in ("cues", "tiny")], axis=1))
 
     every = tiny_columns(parse_setting("cues-v3+tiny-5000"))
-    np.testing.assert_allclose(mirror_map("v3", every)(joined(images)), joined(mirrored), rtol=1e-3, atol=2e-3)
+    np.testing.assert_allclose(mirror_map("v4", every)(joined(images)), joined(mirrored), rtol=1e-3, atol=2e-3)
     sky = tiny_columns(parse_setting("cues-v3+sky3-5000"))  # the L*a*b* of the upper three lattice rows
     assert len(sky) == 72
 
     def joined_sky(x: np.ndarray) -> torch.Tensor:
-        return torch.from_numpy(
-            np.concatenate([get_backbone("cues").extract(x), get_backbone("tiny").extract(x)[:, sky]], 1)
-        )
+        cues = get_backbone("cues").extract(x)[:, :273]  # version 3
+        return torch.from_numpy(np.concatenate([cues, get_backbone("tiny").extract(x)[:, sky]], 1))
 
     np.testing.assert_allclose(mirror_map("v3", sky)(joined_sky(images)), joined_sky(mirrored), rtol=1e-3, atol=2e-3)
+    # version 4 is version 3 joined by +sky3: the same columns, and the same mirror permutation
+    np.testing.assert_array_equal(
+        get_backbone("cues").extract(images)[:, 273:], get_backbone("tiny").extract(images)[:, sky]
+    )
+    columns = torch.arange(345.0)[None]
+    assert torch.equal(mirror_map("v4", None)(columns), mirror_map("v3", sky)(columns))
     v1 = torch.arange(80.0)[None]  # the version-1 columns mirror among themselves (edge orientations)
     assert sorted(mirror_map("v1", None)(v1)[0].tolist()) == v1[0].tolist()
 

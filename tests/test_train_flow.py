@@ -343,3 +343,26 @@ def test_models_from_the_ensemble_size_are_ensembles_with_less_noise(project, mo
     }
     one = p["train"]["input_noise"] * (p["train"]["scale_to"] / 24) ** 0.5
     assert noise["cues-24"] == pytest.approx(one / 2**0.5, rel=1e-6) and noise["cues-8"] > noise["cues-24"]
+
+
+def test_new_features_of_a_backbone_retrain_its_models_instead_of_failing(tmp_path, prefect_harness, monkeypatch):
+    """A new version of a backbone's features (here the cues' code version, as when cues version 4 added the sky's
+    thumbnail) recomputes the feature cache; the train stage then trains the backbone's models afresh under a new
+    checkpoint instead of failing on the old checkpoint's data fingerprint, and removes the stale checkpoint."""
+    from components.features.backbones.cues import CuesBackbone
+    from flows.features import extract_features
+    from flows.generate import generate
+    from flows.train import train_model
+
+    params = write_params(tmp_path, **FAST)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    generate(str(params))
+    extract_features("cues", str(params))
+    train_model("cues", 8, str(params))
+    (old,) = (tmp_path / "models/cues-8").glob("checkpoint-*.pt")
+
+    monkeypatch.setattr(CuesBackbone, "version", CuesBackbone.version + "-test")
+    extract_features("cues", str(params))  # the cache's fingerprint no longer matches: every shard is recomputed
+    metrics = train_model("cues", 8, str(params))
+    (new,) = (tmp_path / "models/cues-8").glob("checkpoint-*.pt")
+    assert new != old and np.isfinite(metrics["test_nll"]) and metrics["epochs_run"] == 3

@@ -59,11 +59,20 @@ Version 3 adds rain, shadow and puddle detectors (32), at full resolution:
   bluer than the sky's mean blue chromaticity − 0.02, brighter than 1.5 × the band's median and brighter than
   0.6 × the sky's mean luma — puddles mirror the sky and lights and darken the road under them.
 
+Version 4 adds the sky's thumbnail (72):
+
+- ``sky_lab`` (72): the upper three rows of an 8×8 lattice of cells (the sky and the horizon at the simulators'
+  pitch), each cell's mean linear RGB (area integration of light) in CIE L*a*b* / 100 — the ``tiny`` backbone's
+  first three lattice rows, to the bit. The glow around a sun low in the sky, its height and colour (the air mass),
+  finer than the cues' 4×4 grid, and where clouds break the sky's gradient.
+
 Measured (BENCHMARKS.md, "Models that read the images"): on 50 000 training images the flow on the 241 version-2
 cues gains 6.2 nats where the 80 version-1 cues gain 4.9; the 32 version-3 cues add 0.2 nats (rain's daytime
-error 5.3 → 4.8).
+error 5.3 → 4.8). The 72 version-4 cues add 0.07–0.10 nats with one flow and read the daytime sun to 5.3–5.7° instead
+of 6.3–6.5°; with two flows 7.47–7.51 nats, calibrated on two seeds (BENCHMARKS.md, "The sky's thumbnail beside the
+cues"). The thumbnail's lower rows are left out: beside the cues they made the flow overconfident about night fog.
 
-Why. It is the interpretable end of the backbone comparison: a flow on these 273 numbers can only use
+Why. It is the interpretable end of the backbone comparison: a flow on these 345 numbers can only use
 what physics says is visible, so comparing it with the learned ``cnn`` and the raw ``tiny`` thumbnail
 shows how much a learned representation adds. The region split assumes a forward-looking camera with
 the horizon near mid-image (true for the simulators' pitch of ±2°).
@@ -86,6 +95,7 @@ import torch
 import torch.nn.functional as F
 
 from components.features.backbones.base import Backbone
+from components.features.backbones.tiny import linear_to_lab
 
 __all__ = ["CuesBackbone", "FEATURE_NAMES", "MIRROR"]
 
@@ -103,6 +113,8 @@ _RIDGE_T = ("0.005", "0.01", "0.02", "0.04")  # thresholds of the line response 
 _RIDGE_DIRECTIONS = {"vertical": (1, 0), "slash": (1, -1), "backslash": (1, 1)}
 _RIDGE_LENGTH = 5  # pixels averaged along a line
 _PUDDLE_BANDS = ((0.55, 0.70), (0.70, 0.85), (0.85, 1.0))  # road rows (shares of the height): far, mid, near
+_SKY_LATTICE = 8  # cells per side of the sky thumbnail's lattice (the tiny backbone's)
+_SKY_ROWS = 3  # of its rows, from the top
 
 
 def _names() -> tuple[str, ...]:
@@ -137,6 +149,8 @@ def _names() -> tuple[str, ...]:
     names += [
         f"puddle_{b}_{k}" for b in ("far", "mid", "near") for k in ("sky_blue_frac", "bright_frac", "sky_bright_frac")
     ]
+    # version 4: the sky's thumbnail
+    names += [f"sky_lab_{ch}_{r}{c}" for ch in "Lab" for r in range(_SKY_ROWS) for c in range(_SKY_LATTICE)]
     return tuple(names)
 
 
@@ -145,11 +159,14 @@ FEATURE_NAMES: tuple[str, ...] = _names()
 
 
 def _mirror_partner(name: str) -> str:
-    """The feature that ``name`` becomes when the image is mirrored left-right: grid column c ↔ 3 − c, left ↔ right
-    wall, edge-orientation bin k ↔ (8 − k) mod 8 (the slant changes sign), ╱ ↔ ╲ ridges; itself for every feature of
-    a region symmetric about the vertical midline (rows, bands, the road, the sky, whole-image statistics)."""
+    """The feature that ``name`` becomes when the image is mirrored left-right: grid column c ↔ 3 − c, sky thumbnail
+    column c ↔ 7 − c, left ↔ right wall, edge-orientation bin k ↔ (8 − k) mod 8 (the slant changes sign), ╱ ↔ ╲ ridges;
+    itself for every feature of a region symmetric about the vertical midline (rows, bands, the road, the sky,
+    whole-image statistics)."""
     if m := re.fullmatch(r"(grid_log_\w+?)(\d)(\d)", name):
         return f"{m[1]}{m[2]}{3 - int(m[3])}"
+    if m := re.fullmatch(r"(sky_lab_\w_)(\d)(\d)", name):
+        return f"{m[1]}{m[2]}{_SKY_LATTICE - 1 - int(m[3])}"
     if m := re.fullmatch(r"(fine_edge_hist|edge_hist)(\d)", name):
         return f"{m[1]}{(8 - int(m[2])) % 8}"
     for a, b in (("left_wall", "right_wall"), ("ridge_slash", "ridge_backslash")):
@@ -364,10 +381,10 @@ def _orientation_histogram(v: torch.Tensor, bins: int = 8) -> torch.Tensor:
 
 
 class CuesBackbone(Backbone):
-    """Physical weather cues (273 features); frozen, no weights. See the module docstring."""
+    """Physical weather cues (345 features); frozen, no weights. See the module docstring."""
 
     name: ClassVar[str] = "cues"
-    version: ClassVar[str] = "3"
+    version: ClassVar[str] = "4"
     dim: int = len(FEATURE_NAMES)
     trainable: bool = False
     input_size: tuple[int, int] = (128, 128)
@@ -381,7 +398,7 @@ class CuesBackbone(Backbone):
         return MIRROR
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → cues ``(n, 273)`` float32 (:data:`FEATURE_NAMES`).
+        """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → cues ``(n, 345)`` float32 (:data:`FEATURE_NAMES`).
 
         Region and colour statistics use the 2×2 area-averaged 64×64 image (4× cheaper, same means);
         contrast, edges and the clipped/dark fractions use full resolution (thin streaks, lamps).
@@ -478,6 +495,8 @@ class CuesBackbone(Backbone):
         lin_full = _srgb_to_linear(x)
         feats.append(_regional(x, lin_full))
         feats += [_ridges(v_full[:, 0]), _ground(lin_full), _puddles(x, v_full[:, 0])]
+        sky = F.adaptive_avg_pool2d(lin_full, _SKY_LATTICE)[:, :, :_SKY_ROWS]  # (n,3,rows,lattice): the tiny's cells
+        feats.append(linear_to_lab(sky).flatten(1) / 100.0)
         out = torch.cat(feats, dim=1)
         if out.shape[1] != self.dim:  # internal consistency of FEATURE_NAMES and the code above
             raise RuntimeError(f"cues: computed {out.shape[1]} features, FEATURE_NAMES has {self.dim}")

@@ -111,6 +111,14 @@ def _energy(estimate: np.ndarray, truth: np.ndarray, truth2: np.ndarray, prior: 
     }
 
 
+def reference_draws(params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """``task2.samples`` draws of the true distribution and of the prior ``(S, 6)``, physical units, from their own
+    seeded streams: every Task II score compares with these."""
+    t = params.task2
+    truth = true_distribution(params).sample(t.samples, seeding.rng(params.seed, "task2", "truth"))
+    return truth, params.box.sample(seeding.rng(params.seed, "task2", "prior"), t.samples)
+
+
 def task2_metrics(domain, params: Params, model_name: str) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
     """Score the characterization ``domain`` of the bag (anything with ``sample(n, seed)`` and ``log_prob(θ)`` in
     physical units) against the true distribution.
@@ -122,8 +130,7 @@ def task2_metrics(domain, params: Params, model_name: str) -> tuple[dict, np.nda
     box = params.box
     truth_dist = true_distribution(params)
     estimate = domain.sample(t.samples, seeding.derive_seed(params.seed, "task2", "estimate"))
-    truth = truth_dist.sample(t.samples, seeding.rng(params.seed, "task2", "truth"))
-    prior = box.sample(seeding.rng(params.seed, "task2", "prior"), t.samples)
+    truth, prior = reference_draws(params)
     k = min(DENSITY_DRAWS, t.samples)
     lp_estimate = domain.log_prob(estimate[:k])
     lp_truth = domain.log_prob(truth[:k])
@@ -187,9 +194,9 @@ def width_floor(posterior, contexts: np.ndarray, theta: np.ndarray, params: Para
 
     Returns ``{"draws", "wasserstein_ratio": {f"{s:g}": {parameter: ratio}}, "posterior_sd_median": {parameter: the
     median over images of the posterior standard deviation, physical units}}``; the truth's and the prior's draws are
-    those of :func:`task2_metrics` (the same seeds), so ``s`` → 0 leaves the bag's own sampling distance.
+    :func:`reference_draws`, as for :func:`task2_metrics`, so ``s`` → 0 leaves the bag's own sampling distance.
     """
-    c, t, box = params.task2.width_floor, params.task2, params.box
+    c, box = params.task2.width_floor, params.box
     theta = np.asarray(theta, dtype=np.float64)
     draws = np.asarray(posterior.sample(contexts, c.draws, seeding.derive_seed(params.seed, "task2", "width-floor")))
     if draws.shape != (theta.shape[0], c.draws, theta.shape[1]):
@@ -197,8 +204,8 @@ def width_floor(posterior, contexts: np.ndarray, theta: np.ndarray, params: Para
             f"posterior draws have shape {draws.shape}, expected {(theta.shape[0], c.draws, theta.shape[1])}"
         )
     spread = draws - np.median(draws, axis=1, keepdims=True)
-    truth = true_distribution(params).sample(t.samples, seeding.rng(params.seed, "task2", "truth"))
-    w_prior = wasserstein_1d(box.sample(seeding.rng(params.seed, "task2", "prior"), t.samples), truth)
+    truth, prior = reference_draws(params)
+    w_prior = wasserstein_1d(prior, truth)
     ratios = {}
     for scale in c.scales:
         moved = np.clip(theta[:, None, :] + scale * spread, box.low, box.high).reshape(-1, theta.shape[1])

@@ -123,6 +123,29 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
 
     x = {"train": feats(splits["train"], s["size"]), "val": feats(splits["val"]), "test": feats(splits["test"])}
     theta = {k: splits[k].theta[: len(v)].astype(np.float32) for k, v in x.items()}
+    mirror = mirror_map(s["version"], joined) if s["mirror"] else None
+    return {"setting": name, **fit(s, x, theta, params, samples, seed, mirror=mirror)}
+
+
+def fit(
+    s: dict,
+    x: dict[str, np.ndarray],
+    theta: dict[str, np.ndarray],
+    params,
+    samples: int,
+    seed: int,
+    device: str = "cpu",
+    mirror=None,
+    compile: bool = True,
+) -> dict:
+    """Train one NPE of setting ``s`` (:func:`parse_setting`) on inputs ``x[split] (n, d)`` float32 with truths
+    ``theta[split] (n, 6)`` (splits train, val, test; the train split's first ``s["size"]`` rows are used) and score it
+    on the test split (:func:`score`); ``mirror``: the map of inputs to their mirror images' (for ``-m``); ``compile``
+    False: never compile the training step (else the pipeline's rule, on a CPU only)."""
+    x = {k: torch.as_tensor(v[: s["size"]] if k == "train" else v).to(device) for k, v in x.items()}
+    theta = {k: torch.as_tensor(v[: s["size"]] if k == "train" else v).to(device) for k, v in theta.items()}
+    if len(x["train"]) < s["size"]:
+        raise ValueError(f"setting of {s['size']} training images: only {len(x['train'])} given")
     fc = flow_config(params.train, size=s["size"], trainable=False, ensemble=s["ensemble"])
     if s["context_layers"] is not None:
         fc = dataclasses.replace(fc, context_layers=s["context_layers"])
@@ -133,27 +156,22 @@ def run(name: str, root: Path, samples: int, seed: int) -> dict:
         mirror=s["mirror"],
         **chosen,
     )
-    model = NPE(None, x["train"].shape[1], params.box, fc, seed=seed)
+    if device != "cpu" or not compile:  # the pipeline's compile rule is for its CPU (inductor's C++ kernels)
+        tc = dataclasses.replace(tc, compile=False)
+    model = NPE(None, x["train"].shape[1], params.box, fc, seed=seed).to(device)
     t0 = time.perf_counter()
-    history = train(
-        model,
-        (torch.from_numpy(x["train"]), torch.from_numpy(theta["train"])),
-        (torch.from_numpy(x["val"]), torch.from_numpy(theta["val"])),
-        tc,
-        mirror=mirror_map(s["version"], joined) if s["mirror"] else None,
-    )
+    history = train(model, (x["train"], theta["train"]), (x["val"], theta["val"]), tc, mirror=mirror)
     model.eval()
-    tempered = calibrate(model, torch.from_numpy(x["val"]), torch.from_numpy(theta["val"])) if s["temperature"] else {}
+    tempered = calibrate(model, x["val"], theta["val"]) if s["temperature"] else {}
     seconds = time.perf_counter() - t0
     return {
-        "setting": name,
         **s,
         "features": x["train"].shape[1],
         "epochs_run": len(history.records),
         "best_epoch": history.best_epoch,
         "train_seconds": round(seconds, 1),
         **tempered,
-        **score(model, torch.from_numpy(x["test"]), torch.from_numpy(theta["test"]), params.box, samples, seed),
+        **score(model, x["test"], theta["test"], params.box, samples, seed),
     }
 
 

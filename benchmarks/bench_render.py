@@ -12,6 +12,10 @@ Weathers are drawn from the uniform prior. Prints a table and one JSON line with
 
 from __future__ import annotations
 
+# isort: off
+import components  # noqa: F401  first, before numpy: it pins numpy's SIMD kernels (the pipeline's images)
+
+# isort: on
 import argparse
 import json
 import os

@@ -5,29 +5,42 @@ whether the issue's 8 nats are a matter of scale or of the images. On one machin
 
 1. renders the train split's first ``max(--sizes)`` images and the val and test splits of ``params.yaml`` (the same
    plan, seed and renderer as the pipeline; ``--workers`` processes);
-2. computes the 273 cues of every image (``CuesBackbone``, on the device);
-3. trains, in the order of ``--models``, NPEs on the cues (``cues-<size>``) with the pipeline's settings for that size
-   (``components.posterior.settings``, temperature fitted on val; compiled only on a CPU) and *hybrids*
+2. computes the cues of every image (``CuesBackbone``, version 4: 345 features, on the device), kept in ``--cache``;
+3. trains, in the order of ``--models``, NPEs on the cues: ``cues-<size>`` with the pipeline's settings for that size
+   (``components.posterior.settings``: its flows, input noise and temperature; compiled only on a CPU) or any
+   ``bench_levers.py`` setting of the cues alone (``cues-v4-<size>[-ens<k>][-c…][-e<k>][-n<σ>][-t]…``), with
+   ``--jobs`` > 1 in that many processes on the CPU at once (``--threads`` each) while the GPU trains the hybrids; and *hybrids*
    (``hybrid-<size>[-e<epochs>][-f]``): a residual CNN on the full 128×128 image (no 2×2 reduction: rain streaks are
    one pixel wide) whose embedding is joined to the standardized cues, trained jointly with the flow (one-cycle
    schedule; ``-f``: the CNN sees each training image mirrored with probability 1/2);
 4. scores each on the whole test split exactly like ``bench_levers.py`` (``score``): test NLL, information gain,
    calibration error with its band, per-parameter day errors and night coverage.
 
-Writes one JSON per model and a summary to ``--out`` as it goes (a killed run keeps what finished). Usage (GPU)::
+It prints the sha256 of every 500 rendered images of each split (to compare one machine's images with another's
+shards). Writes one JSON per model and a summary to ``--out`` as it goes (a killed run keeps what finished). Usage (GPU)::
 
     python benchmarks/bench_scale.py --models cues-50000 hybrid-50000 cues-200000 hybrid-200000-e6 --out /tmp/scale
+
+    # the cues models on 16 CPU cores while the GPU trains a hybrid
+    python benchmarks/bench_scale.py --jobs 8 --cues-device cpu --cache /tmp/scale/cache \
+        --models cues-50000 cues-100000 cues-200000 cues-v4-200000-ens2-n0.066-t hybrid-200000-e6-f
 
 A dry run on a CPU: ``--models cues-600 hybrid-600-e1 --test 200 --samples 50 --device cpu``.
 """
 
 from __future__ import annotations
 
+# isort: off
+import components  # noqa: F401  first, before numpy: it pins numpy's SIMD kernels (the pipeline's images)
+
+# isort: on
 import argparse
 import dataclasses
+import hashlib
 import json
 import multiprocessing as mp
 import re
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -40,13 +53,13 @@ from torch import nn
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_levers import score  # noqa: E402
+from benchmarks.bench_levers import fit, parse_setting, score  # noqa: E402
 from benchmarks.machine import machine_info  # noqa: E402
 from components.core import weather  # noqa: E402
 from components.core.config import load_params  # noqa: E402
-from components.features.backbones.cues import CuesBackbone  # noqa: E402
-from components.posterior import NPE, train  # noqa: E402
-from components.posterior.settings import flow_config, training_config  # noqa: E402
+from components.features.backbones.cues import MIRROR, CuesBackbone  # noqa: E402
+from components.posterior import NPE  # noqa: E402
+from components.posterior.settings import ensemble_for, flow_config, training_config  # noqa: E402
 from components.posterior.temperature import calibrate  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 from components.simulate.procedural import ProceduralSimulator  # noqa: E402
@@ -93,7 +106,7 @@ def render_split(params, name: str, size: int, workers: int) -> tuple[np.ndarray
 
 
 def cues_of(images: np.ndarray, device: str, batch: int = 2048) -> torch.Tensor:
-    """The 273 cues ``(N, 273)`` float32 (on ``device``) of uint8 images ``(N, H, W, 3)``."""
+    """The cues ``(N, 345)`` float32 (on ``device``) of uint8 images ``(N, H, W, 3)``."""
     bb = CuesBackbone().to(device).eval()
     out = []
     with torch.no_grad():
@@ -200,13 +213,62 @@ def train_hybrid(
     )
 
 
-def _parse(name: str, epochs: int) -> tuple[str, int, int, bool]:
-    """``cues-50000`` / ``hybrid-50000[-e6][-f]`` → (kind, size, epochs, flip); ``ValueError`` naming the grammar
-    otherwise."""
+def _parse(name: str, epochs: int, params) -> tuple[str, int, int, bool, dict | None]:
+    """A model's name → (kind, size, epochs, flip, setting): ``cues-<size>`` (the pipeline's settings for the size, as
+    a :func:`~benchmarks.bench_levers.parse_setting` dict), ``cues-v4-<size>…`` (a ``bench_levers.py`` setting on the
+    cues alone) or ``hybrid-<size>[-e<epochs>][-f]``; ``ValueError`` naming the grammar otherwise."""
+    if name.startswith("cues-v"):
+        s = parse_setting(name)
+        if s["version"] != "v4" or s["tiny"] or s["sky_rows"] or s["mirror"]:
+            raise ValueError(
+                f"model {name!r}: this benchmark computes the version-4 cues alone (cues-v4-<size>…, no -m)"
+            )
+        return "cues", s["size"], 0, False, s
     m = re.fullmatch(r"(cues|hybrid)-(\d+)(?:-e(\d+))?(-f)?", name)
     if not m or (m[1] == "cues" and (m[3] or m[4])):
-        raise ValueError(f"model {name!r}: expected cues-<size> or hybrid-<size>[-e<epochs>][-f]")
-    return m[1], int(m[2]), int(m[3] or epochs), bool(m[4])
+        raise ValueError(
+            f"model {name!r}: expected cues-<size>, a bench_levers setting cues-v4-<size>… or hybrid-<size>[-e<epochs>][-f]"
+        )
+    size = int(m[2])
+    return m[1], size, int(m[3] or epochs), bool(m[4]), pipeline_setting(params, size) if m[1] == "cues" else None
+
+
+def pipeline_setting(params, size: int) -> dict:
+    """The pipeline's settings of a cues model of ``size`` images (``components.posterior.settings``: its flows, input
+    noise and temperature) as a ``bench_levers.py`` setting."""
+    noise = training_config(params.train, size=size, trainable=False, features=len(MIRROR), seed=0).input_noise
+    s = parse_setting(f"cues-v4-{size}-ens{ensemble_for(params.train, size)}")
+    return {**s, "noise": noise, "temperature": params.train.temperature}
+
+
+def prepare(params, n_train: int, n_test: int, workers: int, device: str, cache: Path | None):
+    """Images (``{split: (n, H, W, 3) uint8}``, or None when read from ``cache``), cues ``{split: (n, 345)}`` float32
+    and θ ``{split: (n, 6)}`` float32 of the train split's first ``n_train`` images, val and the first ``n_test`` test
+    images; the cues and θ are kept in ``cache`` (``.npy``) when given, and read from there when it holds them."""
+    sizes = {"train": n_train, "val": params.data.splits["val"], "test": n_test}
+    if cache is not None and all((cache / f"cues_{k}.npy").is_file() for k in sizes):
+        cues = {k: np.load(cache / f"cues_{k}.npy", mmap_mode="r") for k in sizes}
+        theta = {k: np.load(cache / f"theta_{k}.npy") for k in sizes}
+        short = [k for k, n in sizes.items() if len(cues[k]) < n]
+        if short:
+            raise ValueError(f"cache {cache}: splits {short} hold fewer images than asked ({sizes})")
+        return None, {k: np.asarray(cues[k][:n]) for k, n in sizes.items()}, {k: theta[k][:n] for k, n in sizes.items()}
+    t0 = time.perf_counter()
+    split = {k: render_split(params, k, n, workers) for k, n in sizes.items()}
+    print(f"rendered {n_train} + val + test images in {time.perf_counter() - t0:.0f} s", flush=True)
+    for k, (images, _) in split.items():  # to compare one machine's images with another's (the data shards')
+        digests = [hashlib.sha256(images[i : i + 500].tobytes()).hexdigest() for i in range(0, len(images), 500)]
+        print(f"sha256 of the {k} images, by 500: {json.dumps(digests)}", flush=True)
+    t1 = time.perf_counter()
+    cues = {k: cues_of(v[0], device).cpu().numpy() for k, v in split.items()}
+    theta = {k: v[1] for k, v in split.items()}
+    print(f"cues in {time.perf_counter() - t1:.0f} s", flush=True)
+    if cache is not None:
+        cache.mkdir(parents=True, exist_ok=True)
+        for k in sizes:
+            np.save(cache / f"theta_{k}.npy", theta[k])
+            np.save(cache / f"cues_{k}.npy", cues[k])  # last: its presence says the split is whole
+    return {k: v[0] for k, v in split.items()}, cues, theta
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -215,36 +277,40 @@ def main(argv: list[str] | None = None) -> None:
         "--models",
         nargs="+",
         default=["cues-50000", "hybrid-50000", "cues-200000", "hybrid-200000"],
-        help="cues-<size> (the pipeline's flow on the cues) or hybrid-<size>[-e<epochs>][-f] (-f: mirrored images half the time), in this order",
+        help="cues-<size> (the pipeline's flow on the cues), a bench_levers setting cues-v4-<size>… or "
+        "hybrid-<size>[-e<epochs>][-f] (-f: mirrored images half the time), in this order",
     )
     p.add_argument("--hybrid-epochs", type=int, default=12, help="the hybrids' epochs unless a name gives them")
     p.add_argument("--test", type=int, default=None, help="test images (default: the whole test split)")
     p.add_argument("--samples", type=int, default=500, help="posterior draws per test image")
     p.add_argument("--seed", type=int, default=2026, help="the flows' seed (the data follow params.yaml)")
-    p.add_argument("--workers", type=int, default=mp.cpu_count())
+    p.add_argument("--workers", type=int, default=mp.cpu_count(), help="rendering processes")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument(
+        "--cues-device", default=None, help="where the cues models train (default: --device); cpu with --jobs > 1"
+    )
+    p.add_argument("--jobs", type=int, default=1, help="cues models trained at once, each in its own process")
+    p.add_argument("--threads", type=int, default=1, help="torch threads of each cues model's process")
+    p.add_argument("--no-compile", action="store_true", help="never compile the cues models' training step")
+    p.add_argument("--cache", type=Path, default=None, help="keep (or read) the cues and θ here (.npy)")
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "scale")
+    p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # one model of a --jobs run: no summary
     a = p.parse_args(argv)
     params = load_params(ROOT / "params.yaml")
     a.out.mkdir(parents=True, exist_ok=True)
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
+    cues_device = a.cues_device or a.device
+    if a.jobs > 1 and (cues_device != "cpu" or a.cache is None):
+        raise ValueError(
+            "--jobs > 1 trains the cues models in processes on the CPU: give --cues-device cpu and --cache"
+        )
     t0 = time.perf_counter()
-    models = [_parse(m, a.hybrid_epochs) for m in a.models]  # every name checked before any work
-    n_train = max(size for _, size, _, _ in models)
+    models = [_parse(m, a.hybrid_epochs, params) for m in a.models]  # every name checked before any work
+    n_train = max(size for _, size, *_ in models)
     n_test = a.test or params.data.splits["test"]
-    split = {
-        "train": render_split(params, "train", n_train, a.workers),
-        "val": render_split(params, "val", params.data.splits["val"], a.workers),
-        "test": render_split(params, "test", n_test, a.workers),
-    }
-    render_s = time.perf_counter() - t0
-    print(f"rendered {n_train} + val + test images in {render_s:.0f} s", flush=True)
-    cues = {k: cues_of(v[0], a.device) for k, v in split.items()}
-    theta = {k: torch.from_numpy(v[1]) for k, v in split.items()}
-    print(f"cues in {time.perf_counter() - t0 - render_s:.0f} s", flush=True)
+    images, cues, theta = prepare(params, n_train, n_test, a.workers, a.device, a.cache)
     summary = {
-        "machine": machine_info(threads=torch.get_num_threads()),
-        "render_seconds": round(render_s, 1),
+        "machine": machine_info(threads=a.threads),
         "device": torch.cuda.get_device_name() if a.device == "cuda" else "cpu",
         "models": {},
     }
@@ -252,53 +318,41 @@ def main(argv: list[str] | None = None) -> None:
     def record(name: str, r: dict) -> None:
         summary["models"][name] = r
         (a.out / f"{name}.json").write_text(json.dumps(r, indent=1))
-        (a.out / "summary.json").write_text(json.dumps(summary, indent=1))
+        if not a.child:
+            (a.out / "summary.json").write_text(json.dumps(summary, indent=1))
         day = r["day_median_abs_error"]
         print(
-            f"{name}: info gain {r['info_gain_nats']:.2f} nats, calibration {r['calibration_error']:.3f} "
-            f"(band {r['calibration_band']:.3f}), day errors {day}, night coverage {r['night_coverage68']}, "
-            f"trained in {r['train_seconds']} s, {time.perf_counter() - t0:.0f} s since the start",
+            f"{name}: info gain {r['info_gain_nats']:.2f} nats, test NLL {r['test_nll']:.2f}, calibration "
+            f"{r['calibration_error']:.3f} (band {r['calibration_band']:.3f}), day errors {day}, night coverage "
+            f"{r['night_coverage68']}, trained in {r['train_seconds']} s, {time.perf_counter() - t0:.0f} s since the start",
             flush=True,
         )
 
-    for name, (kind, size, epochs, flip) in zip(a.models, models, strict=True):
-        if kind == "cues":
-            tc = training_config(params.train, size=size, trainable=False, features=cues["train"].shape[1], seed=a.seed)
-            if a.device != "cpu":  # the pipeline's compile rule is for its CPU (inductor's C++ kernels)
-                tc = dataclasses.replace(tc, compile=False)
-            model = NPE(
-                None,
-                cues["train"].shape[1],
-                params.box,
-                flow_config(params.train, size=size, trainable=False),
-                seed=a.seed,
-            )
-            model.to(a.device)
-            t1 = time.perf_counter()
-            history = train(
-                model,
-                (cues["train"][:size], theta["train"][:size].to(a.device)),
-                (cues["val"], theta["val"].to(a.device)),
-                tc,
-            )
-            model.eval()
-            tempered = calibrate(model, cues["val"], theta["val"].to(a.device))
-            seconds = round(time.perf_counter() - t1, 1)
-            r = score(model, cues["test"], theta["test"].to(a.device), params.box, a.samples, a.seed)
-            info = {
-                "epochs_run": len(history.records),
-                "best_epoch": history.best_epoch,
-                "input_noise": tc.input_noise,
-                "train_seconds": seconds,
-                **tempered,
-            }
+    children: dict[str, subprocess.Popen] = {}
+    for name, (kind, size, epochs, flip, setting) in zip(a.models, models, strict=True):
+        if kind == "cues" and a.jobs > 1:
+            while sum(c.poll() is None for c in children.values()) >= a.jobs:
+                time.sleep(2)
+            argv_child = [sys.executable, __file__, "--models", name, "--cache", str(a.cache), "--out", str(a.out)]
+            argv_child += ["--device", "cpu", "--threads", str(a.threads), "--seed", str(a.seed)]
+            argv_child += ["--samples", str(a.samples), "--test", str(n_test), "--child"]
+            argv_child += ["--no-compile"] if a.no_compile else []
+            log = (a.out / f"{name}.log").open("w")
+            children[name] = subprocess.Popen(argv_child, stdout=log, stderr=subprocess.STDOUT)
+            print(f"{name}: training in process {children[name].pid} (log {a.out / name}.log)", flush=True)
+        elif kind == "cues":
+            torch.set_num_threads(a.threads)
+            r = fit(setting, cues, theta, params, a.samples, a.seed, device=cues_device, compile=not a.no_compile)
+            record(name, {"setting": name, **r})
         else:
-            val = (split["val"][0], cues["val"], theta["val"])
+            if images is None:
+                raise ValueError(f"model {name!r}: a hybrid needs the images; the cache holds only the cues")
+            val = (images["val"], torch.from_numpy(cues["val"]).to(a.device), torch.from_numpy(theta["val"]))
             flow, contexts, info = train_hybrid(
                 params,
-                split["train"][0][:size],
-                cues["train"][:size],
-                theta["train"][:size],
+                images["train"][:size],
+                torch.from_numpy(cues["train"][:size]).to(a.device),
+                torch.from_numpy(theta["train"][:size]),
                 val,
                 epochs,
                 a.seed,
@@ -307,13 +361,18 @@ def main(argv: list[str] | None = None) -> None:
             )
             r = score(
                 flow,
-                contexts(split["test"][0], cues["test"]),
-                theta["test"].to(a.device),
+                contexts(images["test"], torch.from_numpy(cues["test"]).to(a.device)),
+                torch.from_numpy(theta["test"]).to(a.device),
                 params.box,
                 a.samples,
                 a.seed,
             )
-        record(name, {"size": size, **info, **r})
+            record(name, {"size": size, **info, **r})
+    for name, child in children.items():
+        if child.wait() != 0:
+            print(f"{name}: its process failed (exit {child.returncode}); see {a.out / name}.log", flush=True)
+            continue
+        record(name, json.loads((a.out / f"{name}.json").read_text()))
     print(f"done in {time.perf_counter() - t0:.0f} s", flush=True)
 
 

@@ -18,4 +18,15 @@ import os
 NUMPY_DISPATCH_OFF = "X86_V3,X86_V4,AVX512_ICL,AVX512_SPR"
 os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", NUMPY_DISPATCH_OFF)
 
+
+def numpy_kernels() -> str:
+    """The kernels numpy runs in this process for float32 ``exp``: ``"baseline"`` once pinned, else the dispatched
+    target (e.g. ``"AVX512_SKX"``: numpy was imported before ``components``, or with another
+    ``NPY_DISABLE_CPU_FEATURES``)."""
+    import numpy as np
+
+    info = np.lib.introspect.opt_func_info(func_name="exp", signature="float32")["exp"]
+    return str(next(iter(info.values()))["current"])
+
+
 __version__ = "0.1.0"

@@ -93,12 +93,23 @@ def test_levers_mirror_map_is_the_features_of_the_mirrored_images() -> None:
 
 
 def test_scale_models_grammar() -> None:
-    assert _parse("cues-200000", 12) == ("cues", 200000, 12, False)
-    assert _parse("hybrid-50000", 12) == ("hybrid", 50000, 12, False)
-    assert _parse("hybrid-50000-e6-f", 12) == ("hybrid", 50000, 6, True)
+    params = load_params(ROOT / "params.yaml")
+    kind, size, _, flip, setting = _parse("cues-200000", 12, params)
+    assert (kind, size, flip) == ("cues", 200000, False)
+    # the pipeline's settings: its flows, no input noise above train.input_noise_max_size, the fitted temperature
+    assert (setting["ensemble"], setting["noise"], setting["temperature"]) == (params.train.flow.ensemble, 0.0, True)
+    _, _, _, _, setting = _parse("cues-50000", 12, params)
+    assert setting["noise"] == pytest.approx(0.21 * (10000 / 50000 / params.train.flow.ensemble) ** 0.5)
+    _, _, _, _, setting = _parse("cues-v4-100000-ens3-n0.05-t", 12, params)
+    assert (setting["size"], setting["ensemble"], setting["noise"]) == (100000, 3, 0.05)
+    assert _parse("hybrid-50000", 12, params)[:4] == ("hybrid", 50000, 12, False)
+    assert _parse("hybrid-50000-e6-f", 12, params)[:4] == ("hybrid", 50000, 6, True)
     for bad in ("cues-50000-e6", "cues-50000-f", "hybrid-50000-f-e6", "cnn-50000"):
-        with pytest.raises(ValueError, match="expected cues-<size> or hybrid-<size>"):
-            _parse(bad, 12)
+        with pytest.raises(ValueError, match="expected cues-<size>, a bench_levers setting"):
+            _parse(bad, 12, params)
+    for bad in ("cues-v3-50000", "cues-v4+sky3-50000", "cues-v4-50000-m"):
+        with pytest.raises(ValueError, match="version-4 cues alone"):
+            _parse(bad, 12, params)
 
 
 def test_scale_renders_the_pipelines_images(tmp_path: Path) -> None:

@@ -172,3 +172,23 @@ def test_importing_pidc_first_pins_numpys_simd_kernels_to_the_baseline():
         )
         assert out.returncode == 0, out.stderr
         assert out.stdout.strip().startswith("baseline"), (first, out.stdout)
+
+
+def test_the_renderer_refuses_numpys_dispatched_kernels():
+    """A process that imported numpy before pidc runs the CPU's own kernels (AVX2, AVX-512): the renderer refuses it
+    with an error that names the fix, instead of rendering images that differ from another CPU's. On a CPU with no
+    dispatch above the baseline there is nothing to refuse."""
+    probe = (
+        "import numpy, components; print(components.numpy_kernels(), flush=True); "
+        "from components.simulate.procedural import ProceduralSimulator; ProceduralSimulator(32, 32)"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "NPY_DISABLE_CPU_FEATURES"}
+    out = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, env=env, cwd=Path(__file__).resolve().parents[1]
+    )
+    if out.stdout.startswith("baseline"):  # this CPU has no dispatched kernels
+        assert out.returncode == 0, out.stderr
+    else:
+        assert out.returncode != 0
+        assert "import components (or any pidc module) before numpy" in out.stderr, out.stderr
+        assert "NPY_DISABLE_CPU_FEATURES=X86_V3" in out.stderr

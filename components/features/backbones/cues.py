@@ -384,7 +384,9 @@ class CuesBackbone(Backbone):
     """Physical weather cues (345 features); frozen, no weights. See the module docstring."""
 
     name: ClassVar[str] = "cues"
-    version: ClassVar[str] = "4"
+    # 4.1: the sky's lattice converted to L*a*b* whole, as the tiny backbone converts it (version 4 sliced its rows
+    # first: the same features but 1 ULP apart from the tiny's on some CPUs); cached features of "4" are recomputed
+    version: ClassVar[str] = "4.1"
     dim: int = len(FEATURE_NAMES)
     trainable: bool = False
     input_size: tuple[int, int] = (128, 128)
@@ -495,8 +497,10 @@ class CuesBackbone(Backbone):
         lin_full = _srgb_to_linear(x)
         feats.append(_regional(x, lin_full))
         feats += [_ridges(v_full[:, 0]), _ground(lin_full), _puddles(x, v_full[:, 0])]
-        sky = F.adaptive_avg_pool2d(lin_full, _SKY_LATTICE)[:, :, :_SKY_ROWS]  # (n,3,rows,lattice): the tiny's cells
-        feats.append(linear_to_lab(sky).flatten(1) / 100.0)
+        # the tiny's cells (n, 3, lattice, lattice), converted whole as the tiny converts them: a slice of rows would
+        # vectorize differently and round 1 ULP apart on some CPUs (AVX-512); then the upper rows
+        lab = linear_to_lab(F.adaptive_avg_pool2d(lin_full, _SKY_LATTICE))
+        feats.append(lab[:, :, :_SKY_ROWS].flatten(1) / 100.0)
         out = torch.cat(feats, dim=1)
         if out.shape[1] != self.dim:  # internal consistency of FEATURE_NAMES and the code above
             raise RuntimeError(f"cues: computed {out.shape[1]} features, FEATURE_NAMES has {self.dim}")

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import platform
 import threading
 from collections import OrderedDict
 from collections.abc import Mapping
@@ -32,6 +33,7 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 
+from components import NUMPY_DISPATCH_OFF, numpy_kernels
 from components.core.weather import complete_weather
 
 from .calibration import CALIBRATION, Calibration, calibration_hash
@@ -57,6 +59,20 @@ def _check_seed(scene_seed: object) -> int:
     return int(scene_seed)
 
 
+def _check_numpy_kernels() -> None:
+    """Refuse to render with numpy's CPU-dispatched kernels (x86-64): their float32 ``exp`` rounds differently from one
+    CPU to another, so the images would not be byte-identical across machines (``components/__init__.py``)."""
+    if platform.machine().lower() not in {"x86_64", "amd64"}:
+        return
+    kernels = numpy_kernels()
+    if not kernels.startswith("baseline"):
+        raise RuntimeError(
+            f"numpy runs its {kernels} kernels in this process, so the rendered images would depend on the CPU: import "
+            f"components (or any pidc module) before numpy, or start Python with "
+            f"NPY_DISABLE_CPU_FEATURES={NUMPY_DISPATCH_OFF}"
+        )
+
+
 class ProceduralSimulator:
     """Renders ``height × width`` RGB front-camera images of procedural scenes under CARLA weathers.
 
@@ -74,6 +90,7 @@ class ProceduralSimulator:
             raise ValueError(f"image size must be within 16..2048 pixels, got {height}×{width}")
         if cache_size < 1:
             raise ValueError(f"cache_size must be >= 1, got {cache_size}")
+        _check_numpy_kernels()
         self.height = int(height)
         self.width = int(width)
         self.calibration = calibration

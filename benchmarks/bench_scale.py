@@ -57,7 +57,7 @@ from benchmarks.bench_levers import fit, parse_setting, score  # noqa: E402
 from benchmarks.machine import machine_info  # noqa: E402
 from components.core import weather  # noqa: E402
 from components.core.config import load_params  # noqa: E402
-from components.features.backbones.cues import MIRROR, CuesBackbone  # noqa: E402
+from components.features.backbones.cues import CuesBackbone  # noqa: E402
 from components.posterior import NPE  # noqa: E402
 from components.posterior.settings import ensemble_for, flow_config, training_config  # noqa: E402
 from components.posterior.temperature import calibrate  # noqa: E402
@@ -236,7 +236,7 @@ def _parse(name: str, epochs: int, params) -> tuple[str, int, int, bool, dict | 
 def pipeline_setting(params, size: int) -> dict:
     """The pipeline's settings of a cues model of ``size`` images (``components.posterior.settings``: its flows, input
     noise and temperature) as a ``bench_levers.py`` setting."""
-    noise = training_config(params.train, size=size, trainable=False, features=len(MIRROR), seed=0).input_noise
+    noise = training_config(params.train, size=size, trainable=False, features=CuesBackbone.dim, seed=0).input_noise
     s = parse_setting(f"cues-v4-{size}-ens{ensemble_for(params.train, size)}")
     return {**s, "noise": noise, "temperature": params.train.temperature}
 

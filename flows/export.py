@@ -5,14 +5,16 @@ Registry.
 (:func:`components.export.onnx.export_posterior`, checked against torch in onnxruntime) with a model card (backbone,
 training size, θ order, units and bijection, input spec, training metrics, data hash, git commit, opset,
 onnxruntime version), then registered (:func:`flows.tracking.register_model`). The champion alias comes after the
-evaluation (the ``evaluate`` stage). One process exports the models one after the other (a few seconds each): one
-stage instead of one per model saves the start-up of a Python process with torch, Prefect and MLflow per model, and
-the registry's version numbers are assigned by one writer.
+evaluation (the ``evaluate`` stage). The exports run ``export.runner.workers`` at a time (the largest models first;
+torch's ONNX exporter is single-threaded Python), the registrations one after the other in the flow, in the order of
+``params.model_ids()``: the registry's version numbers are assigned by one writer, the same on every run.
 """
 
 from __future__ import annotations
 
+import os
 import time
+from pathlib import Path
 
 from prefect import flow, task
 from tqdm.auto import tqdm
@@ -21,12 +23,40 @@ from components.export.onnx import export_posterior
 from components.features.backbones import get_backbone
 from components.posterior.store import load_npe
 from flows import tracking
-from flows.stage import open_stage, parse_stage_args, use_all_cores
+from flows.stage import open_stage, parse_stage_args, share_api_with_workers, task_runner, use_all_cores
 
 
 @task(name="export-model")
 def export_model(model_id: str, params_path: str) -> dict:
     """Export ``models/<model_id>`` into ``registry/<model_id>`` and register it in MLflow."""
+    out = write_onnx.fn(model_id, params_path)
+    return {**out, **register(model_id, params_path, out)}
+
+
+def register(model_id: str, params_path: str, exported: dict) -> dict:
+    """Register the exported folder of ``model_id`` (what :func:`write_onnx` returns) in MLflow; its registry entry."""
+    stage = open_stage(params_path)
+    entry = tracking.register_model(Path(exported["folder"]), stage.params, stage.paths.root, model_id)
+    stage.logger.info(
+        "%s → %s (%s exporter, %.1f s); registered as %s version %s",
+        model_id,
+        exported["folder"],
+        stage.params.export.exporter,
+        exported["export_seconds"],
+        entry["name"],
+        entry["version"],
+    )
+    return entry
+
+
+@task(name="write-onnx")
+def write_onnx(model_id: str, params_path: str, threads: int | None = None) -> dict:
+    """Export ``models/<model_id>`` into ``registry/<model_id>`` (``threads`` torch threads; None: torch's default):
+    ``{"folder", "export_seconds"}``."""
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
     stage = open_stage(params_path)
     params, paths = stage.params, stage.paths
     path = paths.models / model_id / "model.pt"
@@ -48,24 +78,14 @@ def export_model(model_id: str, params_path: str) -> dict:
     }
     t0 = time.perf_counter()
     folder = export_posterior(model, paths.registry / model_id, card=card, exporter=params.export.exporter)
-    seconds = time.perf_counter() - t0
-    entry = tracking.register_model(folder, params, paths.root, model_id)
-    stage.logger.info(
-        "%s → %s (%s exporter, %.1f s); registered as %s version %s",
-        model_id,
-        folder,
-        params.export.exporter,
-        seconds,
-        entry["name"],
-        entry["version"],
-    )
-    return {"folder": str(folder), "export_seconds": seconds, **entry}
+    return {"folder": str(folder), "export_seconds": time.perf_counter() - t0}
 
 
 @flow(name="export", log_prints=True)
 def export_all(params_path: str, models: list[str] | None = None) -> dict[str, dict]:
-    """Export ``models`` (default: the grid and its variants, ``params.model_ids()``) one after the other; model id →
-    what :func:`export_model` returns. Every model must be trained: the missing ones are named before any export."""
+    """Export ``models`` (default: the grid and its variants, ``params.model_ids()``), ``export.runner.workers`` at a
+    time, and register them in that order; model id → what :func:`export_model` returns. Every model must be trained:
+    the missing ones are named before any export."""
     stage = open_stage(params_path)
     params, paths = stage.params, stage.paths
     ids = list(models) if models else params.model_ids()
@@ -74,11 +94,20 @@ def export_all(params_path: str, models: list[str] | None = None) -> dict[str, d
     missing = [m for m in ids if not (paths.models / m / "model.pt").is_file()]
     if missing:
         raise FileNotFoundError(f"no trained model for {', '.join(missing)} in {paths.models} (run `dvc repro train`)")
-    return {m: export_model(m, params_path) for m in tqdm(ids, desc="export models", unit="model")}
+    workers = min(params.export.runner.workers, len(ids))
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    share_api_with_workers()
+    largest_first = sorted(ids, key=lambda m: params.model_cell(m)[1], reverse=True)
+    futures = {m: write_onnx.submit(m, params_path, threads) for m in largest_first}
+    results = {}
+    for m in tqdm(ids, desc="export models", unit="model"):  # the registry's versions in the grid's order
+        out = futures[m].result()
+        results[m] = {**out, **register(m, params_path, out)}
+    return results
 
 
 def main(argv: list[str] | None = None) -> None:
-    args, _ = parse_stage_args(
+    args, params = parse_stage_args(
         "Export the trained models to registry/ and the MLflow Model Registry (the export stage).",
         argv,
         [
@@ -92,7 +121,7 @@ def main(argv: list[str] | None = None) -> None:
         ],
     )
     use_all_cores()
-    export_all(str(args.params), args.model)
+    export_all.with_options(task_runner=task_runner(params.export.runner))(str(args.params), args.model)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """The ``features@<backbone>`` stage: cache a backbone's output for every dataset shard.
 
-``python -m flows.features --backbone cues [--params params.yaml]``. One Prefect task per dataset
-shard; shards whose cached output matches the current data and backbone are skipped.
+``python -m flows.features --backbone cues [--params params.yaml]``. One Prefect task per
+``data.shards_per_task`` dataset shards; shards whose cached output matches the current data and backbone are skipped.
 """
 
 from __future__ import annotations
@@ -16,7 +16,14 @@ from components.features import cache as features
 from components.features.backbones import Backbone, get_backbone
 from components.features.options import backbone_options
 from components.simulate import dataset
-from flows.stage import open_stage, parse_stage_args, share_api_with_workers, task_runner, wait_with_progress
+from flows.stage import (
+    batches,
+    open_stage,
+    parse_stage_args,
+    share_api_with_workers,
+    task_runner,
+    wait_with_progress,
+)
 
 
 @functools.lru_cache(maxsize=4)
@@ -29,18 +36,23 @@ def _split(root: str, name: str) -> dataset.Split:
     return dataset.open_split(root, name)
 
 
-@task(name="backbone-shard")
-def shard_task(name: str, options_json: str, data: str, split_name: str, k: int, out: str, batch_size: int) -> int:
+@task(name="backbone-shards")
+def shards_task(
+    name: str, options_json: str, data: str, shards: list[tuple[str, int]], out: str, batch_size: int
+) -> list[int]:
+    """The backbone's output of a batch of ``(split, shard)`` pairs, each shard's written as it is done; their sizes."""
     import torch
 
     torch.set_num_threads(1)  # parallelism comes from the task runner
     backbone = _backbone(name, options_json)
-    split = _split(data, split_name)
-    values = features.backbone_output(backbone, split.shard_images(k), batch_size)
-    features.write_shard_features(
-        features.FeatureStore(Path(out), name), split, k, values, features.output_fingerprint(backbone)
-    )
-    return len(values)
+    store = features.FeatureStore(Path(out), name)
+    sizes = []
+    for split_name, k in shards:
+        split = _split(data, split_name)
+        values = features.backbone_output(backbone, split.shard_images(k), batch_size)
+        features.write_shard_features(store, split, k, values, features.output_fingerprint(backbone))
+        sizes.append(len(values))
+    return sizes
 
 
 @flow(name="features", log_prints=True)
@@ -77,18 +89,17 @@ def extract_features(backbone_name: str, params_path: str) -> dict:
     )
     share_api_with_workers()
     futures = [
-        shard_task.submit(
+        shards_task.submit(
             backbone_name,
             json.dumps(options, sort_keys=True),
             str(root),
-            s,
-            k,
+            batch,
             str(store.root),
             params.backbones.batch_size,
         )
-        for s, k in todo
+        for batch in batches(todo, params.data.shards_per_task)
     ]
-    wait_with_progress(futures, desc=f"features@{backbone_name}")
+    wait_with_progress(futures, desc=f"features@{backbone_name}", total=len(todo), unit="shard", per_item=True)
     manifest = features.write_features_manifest(
         store,
         splits,

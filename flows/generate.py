@@ -1,7 +1,8 @@
 """The ``generate`` stage: render the train/val/test splits into shards, a manifest and a contact sheet.
 
 ``python -m flows.generate [--params params.yaml]``. Shards are rendered by parallel Prefect tasks
-(the task runner of ``data.runner``); finished shards are skipped, so a killed run resumes.
+(the task runner of ``data.runner``, ``data.shards_per_task`` shards per task); finished shards are skipped, so a
+killed run resumes.
 """
 
 from __future__ import annotations
@@ -15,7 +16,14 @@ from components.core import seeding
 from components.core.config import Params, SimulatorConfig
 from components.simulate import dataset
 from components.simulate.base import make_simulator
-from flows.stage import open_stage, parse_stage_args, share_api_with_workers, task_runner, wait_with_progress
+from flows.stage import (
+    batches,
+    open_stage,
+    parse_stage_args,
+    share_api_with_workers,
+    task_runner,
+    wait_with_progress,
+)
 
 
 @functools.lru_cache(maxsize=2)
@@ -24,9 +32,10 @@ def _simulator(cfg: SimulatorConfig):
     return make_simulator(cfg)
 
 
-@task(name="render-shard", retries=0)
-def render_shard(rows: dataset.ShardRows, sim_cfg: SimulatorConfig, root: str) -> dict:
-    return dataset.render_shard(rows, _simulator(sim_cfg), root)
+@task(name="render-shards", retries=0)
+def render_shards(rows: list[dataset.ShardRows], sim_cfg: SimulatorConfig, root: str) -> list[dict]:
+    """Render a batch of shards one after the other (each written atomically as it is done); their receipts."""
+    return [dataset.render_shard(r, _simulator(sim_cfg), root) for r in rows]
 
 
 def plans(params: Params, renderer_version: str) -> list[dataset.SplitPlan]:
@@ -68,8 +77,10 @@ def generate(params_path: str) -> dict:
 
     t0 = time.perf_counter()
     share_api_with_workers()
-    futures = [render_shard.submit(rows, params.simulator, str(root)) for rows in todo]
-    wait_with_progress(futures, desc="generate shards")
+    futures = [
+        render_shards.submit(batch, params.simulator, str(root)) for batch in batches(todo, params.data.shards_per_task)
+    ]
+    wait_with_progress(futures, desc="generate", total=len(todo), unit="shard", per_item=True)
     n_images = sum(r.spec.stop - r.spec.start for r in todo)
     elapsed = time.perf_counter() - t0
     if n_images:

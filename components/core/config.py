@@ -95,6 +95,8 @@ class DataConfig(_Section):
     shard_size: PositiveInt
     #: consecutive images rendered in the same scene (a map and spawn point under many weathers)
     images_per_scene: PositiveInt
+    #: shards one Prefect task renders (generate) or passes through a backbone (features)
+    shards_per_task: PositiveInt
     runner: RunnerConfig
 
     @field_validator("splits")
@@ -262,6 +264,19 @@ class ExportConfig(_Section):
     #: does, the lowest test NLL among those with a calibration error ≤ this ceiling (the choice is recorded);
     #: when none is below it either, the evaluation fails
     champion_max_calibration_error: Annotated[float, Field(gt=0, le=1)]
+    #: models exported at a time (their registrations follow one by one, in the grid's order); in processes only:
+    #: torch's ONNX exporter keeps global state, so two exports in one process would corrupt each other
+    runner: RunnerConfig
+
+    @field_validator("runner")
+    @classmethod
+    def _exports_in_processes(cls, v: RunnerConfig) -> RunnerConfig:
+        if v.workers > 1 and v.kind != "processes":
+            raise ValueError(
+                f"kind {v.kind!r} with {v.workers} workers: parallel exports need kind: processes (torch's ONNX "
+                "exporter keeps global state, two exports in one process corrupt each other), or workers: 1"
+            )
+        return v
 
 
 class GaussianMode(_Section):

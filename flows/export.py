@@ -17,6 +17,8 @@ import time
 from pathlib import Path
 
 from prefect import flow, task
+from prefect.context import FlowRunContext
+from prefect.task_runners import ProcessPoolTaskRunner
 from tqdm.auto import tqdm
 
 from components.export.onnx import export_posterior
@@ -84,8 +86,9 @@ def write_onnx(model_id: str, params_path: str, threads: int | None = None) -> d
 @flow(name="export", log_prints=True)
 def export_all(params_path: str, models: list[str] | None = None) -> dict[str, dict]:
     """Export ``models`` (default: the grid and its variants, ``params.model_ids()``), ``export.runner.workers`` at a
-    time, and register them in that order; model id → what :func:`export_model` returns. Every model must be trained:
-    the missing ones are named before any export."""
+    time in worker processes (one after the other when the flow runs on another task runner, e.g. called as a
+    function), and register them in that order; model id → what :func:`export_model` returns. Every model must be
+    trained: the missing ones are named before any export."""
     stage = open_stage(params_path)
     params, paths = stage.params, stage.paths
     ids = list(models) if models else params.model_ids()
@@ -94,12 +97,19 @@ def export_all(params_path: str, models: list[str] | None = None) -> dict[str, d
     missing = [m for m in ids if not (paths.models / m / "model.pt").is_file()]
     if missing:
         raise FileNotFoundError(f"no trained model for {', '.join(missing)} in {paths.models} (run `dvc repro train`)")
+    results = {}
+    if not isinstance(FlowRunContext.get().task_runner, ProcessPoolTaskRunner):
+        # the flow called as a function (Prefect's default runner: threads): torch's ONNX exporter keeps global state,
+        # so two exports must not share a process; one after the other here, in the grid's order
+        for m in tqdm(ids, desc="export models", unit="model"):
+            out = write_onnx(m, params_path)
+            results[m] = {**out, **register(m, params_path, out)}
+        return results
     workers = min(params.export.runner.workers, len(ids))
     threads = max(1, (os.cpu_count() or 1) // workers)
     share_api_with_workers()
     largest_first = sorted(ids, key=lambda m: params.model_cell(m)[1], reverse=True)
     futures = {m: write_onnx.submit(m, params_path, threads) for m in largest_first}
-    results = {}
     for m in tqdm(ids, desc="export models", unit="model"):  # the registry's versions in the grid's order
         out = futures[m].result()
         results[m] = {**out, **register(m, params_path, out)}

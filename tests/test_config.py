@@ -162,7 +162,9 @@ MISSING = [
     "profile",
     "prior",
     "data.shard_size",
+    "data.shards_per_task",
     "data.runner.dask_address",
+    "export.runner",
     "backbones.pretrained_dir",
     "train.flow.bins",
     "train.flow.standardize",
@@ -213,6 +215,11 @@ def test_unknown_key_is_named():
         (lambda d: d["prior"].update(fog_density=[0, 200]), r"'fog_density' = 200 is outside"),
         (lambda d: d["train"].update(sizes=[1000, 60000]), r"train split must cover the largest training size"),
         (lambda d: d["data"]["runner"].update(kind="mpi"), r"data\.runner\.kind"),
+        (lambda d: d["data"].update(shards_per_task=0), r"data\.shards_per_task: Input should be greater than 0"),
+        (
+            lambda d: d["export"]["runner"].update(kind="threads"),
+            r"export\.runner: .*parallel exports need kind: processes",
+        ),
         (
             lambda d: d["train"]["variants"].update(
                 x={"backbone": "resnet50", "size": 10000, "balance": 0, "ensemble": 2}

@@ -172,30 +172,6 @@ def test_draws_from_the_same_noise_match_torch(exported, kind):
     assert BOX.contains(theta).all()
 
 
-def test_ensemble_draws_do_not_depend_on_how_the_members_are_packed(exported):
-    """Each member inverts its draws packed per input (the rest of the block is padding): uneven counts per input, an
-    input without any draw of a member and a member without any draw give the torch model's draws; an input's draws
-    change with the inputs beside it in the last float digits only (the packed block's shape), and not at all when
-    the call is repeated."""
-    model, runtime, _ = exported["ensemble"]
-    b, n = 3, 40
-    x = _inputs(model, b, seed=22)
-    rng = seeding.rng(6, "test", "noise")
-    eps = rng.standard_normal((b, n, BOX.dim)).astype(np.float32)
-    members = np.zeros((b, n), dtype=np.int64)
-    members[0, :3] = 1  # input 0: 3 draws of member 1; input 1: none; input 2: all
-    members[2] = 1
-    for which in (members, np.zeros_like(members)):  # the second: member 1 draws nothing at all
-        theta, log_q = runtime.sample_from_noise(x, eps, which)
-        theta_t, log_q_t = _torch_draws(model, x, eps, which)
-        np.testing.assert_allclose((theta - theta_t) / BOX.width, 0.0, atol=1e-4)
-        np.testing.assert_allclose(log_q, log_q_t, rtol=0, atol=1e-3)
-    alone, _ = runtime.sample_from_noise(x[:1], eps[:1], members[:1])
-    together, _ = runtime.sample_from_noise(x, eps, members)
-    np.testing.assert_allclose((alone[0] - together[0]) / BOX.width, 0.0, atol=1e-5)
-    np.testing.assert_array_equal(runtime.sample_from_noise(x, eps, members)[0], together)
-
-
 @pytest.mark.parametrize("kind", KINDS)
 def test_sampling_is_seeded_inside_the_box_and_self_consistent(exported, kind):
     model, runtime, _ = exported[kind]

@@ -366,3 +366,25 @@ def test_new_features_of_a_backbone_retrain_its_models_instead_of_failing(tmp_pa
     metrics = train_model("cues", 8, str(params))
     (new,) = (tmp_path / "models/cues-8").glob("checkpoint-*.pt")
     assert new != old and np.isfinite(metrics["test_nll"]) and metrics["epochs_run"] == 3
+
+
+def test_export_flow_called_as_a_function_exports_one_model_at_a_time(project, monkeypatch):
+    """Called as a function, the export flow runs on Prefect's default task runner (threads), where two exports would
+    share torch's ONNX exporter and its global state: it exports one model after the other, and the registry's
+    versions follow the order of the models asked for."""
+    from flows.export import export_all
+    from flows.train import train_model
+
+    folder, params = project
+    monkeypatch.setenv(
+        "MLFLOW_TRACKING_URI", f"sqlite:///{folder / 'mlflow-export.db'}"
+    )  # its own store: versions 1, 2
+    for size in (8, 16):
+        if not (folder / f"models/cues-{size}/model.pt").exists():
+            train_model("cues", size, str(params))
+    out = export_all(str(params), ["cues-16", "cues-8"])
+    assert list(out) == ["cues-16", "cues-8"]
+    assert [out[m]["version"] for m in out] == ["1", "2"] and {out[m]["name"] for m in out} == {"pidc"}
+    for m in out:
+        card = json.loads((folder / "registry" / m / "card.json").read_text())
+        assert card["model_id"] == m and out[m]["export_seconds"] > 0

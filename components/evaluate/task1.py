@@ -75,9 +75,8 @@ def posterior_draws(
     ``sample_from_noise``, ``log_prob``). Each input's context is computed once (``context_chunk`` inputs per call);
     the draws of ``chunk`` images go through the flow per call (small calls keep the flow's activations in the CPU's
     cache: 4 images × 1000 draws per call were ~10 % faster than 25). Image i's base noise (and ensemble
-    members) come from the stream ``seeding.rng(seed, "evaluate", i)``: they depend on i only. The chunks start at
-    image 0, so the first N images of a longer evaluation get the same draws (N a multiple of ``chunk``); an
-    ensemble's members invert their draws packed per chunk, whose shape can move the last float digits.
+    members) come from the stream ``seeding.rng(seed, "evaluate", i)``: the draws of the i-th input depend on i only,
+    not on the chunking nor on how many inputs follow it.
     """
     x = np.asarray(x)
     big_n, d, k = x.shape[0], posterior.dim, posterior.ensemble

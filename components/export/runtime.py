@@ -322,24 +322,17 @@ class OnnxPosterior:
             z, log_qz = self._invert(0, context, eps)
             z64 = z.astype(np.float64).reshape(b * n, d)
             log_qz = log_qz.reshape(b * n)
-        else:  # each draw goes through its member, then the mixture's density
-            z64 = np.empty((b, n, d), dtype=np.float64)
+        else:  # each draw goes through its member: rows of one draw each, then the mixture's density
+            c_rows = np.repeat(context, n, axis=0)  # row b·n + j ↔ (input b, draw j)
+            e_rows = eps.reshape(b * n, 1, d)
+            w_rows = which.reshape(b * n)
+            z64 = np.empty((b * n, d), dtype=np.float64)
             for k in range(self.ensemble):
-                # member k's draws of each input, packed to the front of a (b, m, d) block (m: the most any input
-                # has; the rest is padding, inverted and dropped): the context stays shared by an input's draws
-                mine = which == k
-                counts = mine.sum(axis=1)
-                m = int(counts.max())
-                if m == 0:
-                    continue
-                slot = np.cumsum(mine, axis=1) - 1  # draw j of input i is member k's slot[i, j]-th draw
-                rows, cols = np.nonzero(mine)
-                packed = np.zeros((b, m, d), dtype=np.float32)
-                packed[rows, slot[rows, cols]] = eps[rows, cols]
-                zk, _ = self._invert(k, context, packed)
-                z64[rows, cols] = zk[rows, slot[rows, cols]]
-            z64 = z64.reshape(b * n, d)
-            log_qz = self._log_qz_mixture(np.repeat(context, n, axis=0), z64)  # row b·n + j ↔ (input b, draw j)
+                rows = np.flatnonzero(w_rows == k)
+                if rows.size:
+                    zk, _ = self._invert(k, np.ascontiguousarray(c_rows[rows]), np.ascontiguousarray(e_rows[rows]))
+                    z64[rows] = zk[:, 0]
+            log_qz = self._log_qz_mixture(c_rows, z64)
         theta = weather.to_physical(z64, self.box)
         log_q = log_qz - weather.log_abs_det_jacobian(z64, self.box)
         return theta.reshape(b, n, d), log_q.reshape(b, n)

@@ -97,21 +97,20 @@ def export_all(params_path: str, models: list[str] | None = None) -> dict[str, d
     missing = [m for m in ids if not (paths.models / m / "model.pt").is_file()]
     if missing:
         raise FileNotFoundError(f"no trained model for {', '.join(missing)} in {paths.models} (run `dvc repro train`)")
-    results = {}
-    if not isinstance(FlowRunContext.get().task_runner, ProcessPoolTaskRunner):
+    if isinstance(FlowRunContext.get().task_runner, ProcessPoolTaskRunner):
+        workers = min(params.export.runner.workers, len(ids))
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        share_api_with_workers()
+        largest_first = sorted(ids, key=lambda m: params.model_cell(m)[1], reverse=True)
+        futures = {m: write_onnx.submit(m, params_path, threads) for m in largest_first}
+        exported = lambda m: futures[m].result()  # noqa: E731
+    else:
         # the flow called as a function (Prefect's default runner: threads): torch's ONNX exporter keeps global state,
-        # so two exports must not share a process; one after the other here, in the grid's order
-        for m in tqdm(ids, desc="export models", unit="model"):
-            out = write_onnx(m, params_path)
-            results[m] = {**out, **register(m, params_path, out)}
-        return results
-    workers = min(params.export.runner.workers, len(ids))
-    threads = max(1, (os.cpu_count() or 1) // workers)
-    share_api_with_workers()
-    largest_first = sorted(ids, key=lambda m: params.model_cell(m)[1], reverse=True)
-    futures = {m: write_onnx.submit(m, params_path, threads) for m in largest_first}
+        # so two exports must not share a process; one after the other here
+        exported = lambda m: write_onnx(m, params_path)  # noqa: E731
+    results = {}
     for m in tqdm(ids, desc="export models", unit="model"):  # the registry's versions in the grid's order
-        out = futures[m].result()
+        out = exported(m)
         results[m] = {**out, **register(m, params_path, out)}
     return results
 

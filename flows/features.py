@@ -46,11 +46,12 @@ def shards_task(
     torch.set_num_threads(1)  # parallelism comes from the task runner
     backbone = _backbone(name, options_json)
     store = features.FeatureStore(Path(out), name)
+    fingerprint = features.output_fingerprint(backbone)
     sizes = []
     for split_name, k in shards:
         split = _split(data, split_name)
         values = features.backbone_output(backbone, split.shard_images(k), batch_size)
-        features.write_shard_features(store, split, k, values, features.output_fingerprint(backbone))
+        features.write_shard_features(store, split, k, values, fingerprint)
         sizes.append(len(values))
     return sizes
 

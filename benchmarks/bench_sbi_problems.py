@@ -160,11 +160,13 @@ def default_configs(params: Any, n_train: int, x_dim: int, seed: int) -> tuple[A
     ``train:`` section (``params``, a loaded :class:`components.core.config.Params`) through
     :mod:`components.posterior.settings`, as ``flows/train.py`` builds them for cached features of ``n_train`` images
     (the small-data rule of ``train.scale_to`` included)."""
+    import dataclasses
+
     from components.posterior.settings import flow_config, training_config
 
-    return flow_config(params.train, size=n_train, trainable=False), training_config(
-        params.train, size=n_train, trainable=False, features=x_dim, seed=seed
-    )
+    # no temperature is fitted on these problems (they have no validation split of the pipeline's kind), so no regime
+    flow = dataclasses.replace(flow_config(params.train, size=n_train, trainable=False), regime_temperature=False)
+    return flow, training_config(params.train, size=n_train, trainable=False, features=x_dim, seed=seed)
 
 
 def pidc_configs(setting: str, n_train: int, base: tuple[Any, Any]) -> tuple[Any, Any]:

@@ -59,8 +59,8 @@ from components.core import weather  # noqa: E402
 from components.core.config import load_params  # noqa: E402
 from components.features.backbones.cues import CuesBackbone  # noqa: E402
 from components.posterior import NPE  # noqa: E402
-from components.posterior.settings import ensemble_for, flow_config, training_config  # noqa: E402
-from components.posterior.temperature import calibrate  # noqa: E402
+from components.posterior.settings import ensemble_for, flow_config, temperature_regime, training_config  # noqa: E402
+from components.posterior.temperature import calibrate, fit_regime_gate  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 from components.simulate.procedural import ProceduralSimulator  # noqa: E402
 
@@ -205,7 +205,10 @@ def train_hybrid(
             )
 
     flow.eval()
-    tempered = calibrate(flow, contexts(val[0], val[1]), val[2].to(device))
+    regime = temperature_regime(params.train, params.box)  # the pipeline's: a gate on the training pairs, then τ
+    if regime is not None:
+        fit_regime_gate(flow, contexts(images, cues), th, regime)
+    tempered = calibrate(flow, contexts(val[0], val[1]), val[2].to(device), regime)
     return (
         flow,
         contexts,

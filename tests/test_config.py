@@ -171,6 +171,8 @@ MISSING = [
     "train.min_lr",
     "train.variants",
     "train.temperature",
+    "train.temperature_regime",
+    "train.temperature_regime.below",
     "task2.modes",
     "task3.bags",
     "task3.bags.b1.max_images",
@@ -235,6 +237,15 @@ def test_unknown_key_is_named():
         (lambda d: d["train"].update(min_lr=0.01), r"train: .*min_lr \(0\.01\) must not exceed lr \(0\.001\)"),
         (lambda d: d["train"].update(plateau_factor=1.0), r"train\.plateau_factor: Input should be less than 1"),
         (lambda d: d["train"]["flow"].update(standardize="maybe"), r"train\.flow\.standardize"),
+        (
+            lambda d: d["train"]["temperature_regime"].update(parameter="sun"),
+            r"train\.temperature_regime\.parameter is 'sun', not one of the prior's parameters",
+        ),
+        (
+            lambda d: d["train"]["temperature_regime"].update(below=-90),
+            r"train\.temperature_regime\.below = -90 must lie inside the prior of sun_altitude_angle, \(-90, 90\)",
+        ),
+        (lambda d: d["train"]["temperature_regime"].update(name="Night!"), r"train\.temperature_regime\.name"),
         (
             lambda d: d["evaluate"].update(samples=100),
             r"evaluate\.samples: Input should be greater than or equal to 400",
@@ -385,6 +396,8 @@ def test_settings_set_every_field_of_the_library_classes(profile, trainable, mon
         "hidden_features": tuple(t.flow.hidden_features),
         # a backbone trained with the flow is its own context network
         "context_layers": () if trainable else tuple(t.flow.context_layers),
+        # the base scale per regime is part of the flow's architecture
+        "regime_temperature": t.temperature and t.temperature_regime is not None,
     }
     same = {f.name for f in dataclasses.fields(TrainingConfig)} - {
         "epochs",

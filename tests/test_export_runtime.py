@@ -31,9 +31,16 @@ ROOT = Path(__file__).resolve().parents[1]
 BOX = weather.Box.full()
 
 
-def _features_model(ensemble: int, seed: int, context_layers: tuple[int, ...] = ()) -> NPE:
+def _features_model(
+    ensemble: int, seed: int, context_layers: tuple[int, ...] = (), regime_temperature: bool = False
+) -> NPE:
     config = FlowConfig(
-        transforms=2, hidden_features=(24, 24), bins=6, ensemble=ensemble, context_layers=context_layers
+        transforms=2,
+        hidden_features=(24, 24),
+        bins=6,
+        ensemble=ensemble,
+        context_layers=context_layers,
+        regime_temperature=regime_temperature,
     )
     model = NPE(None, 12, BOX, config, seed=seed)
     rng = seeding.rng(seed, "test", "standardization")
@@ -62,8 +69,9 @@ def exported(tmp_path_factory) -> dict[str, tuple[NPE, OnnxPosterior, Path]]:
     """Three models exported (with the fast torchscript exporter) and loaded back.
 
     ``features``: a coupling flow (2 transforms); ``ensemble``: two of them after a context network (12 → 16 → 10);
-    ``cnn``: a trainable CNN embedding and a fully autoregressive flow (6 inversion passes). The ensemble and the CNN model have a base scale τ ≠ 1 (the
-    post-hoc temperature), so every graph check covers a tempered flow too.
+    ``cnn``: a trainable CNN embedding and a fully autoregressive flow (6 inversion passes); ``regime``: the ensemble
+    with a base scale per regime, its gate's probability spread over (0, 1) by the inputs. The ensemble and the CNN
+    model have a base scale τ ≠ 1 (the post-hoc temperature), so every graph check covers a tempered flow too.
     """
     root = tmp_path_factory.mktemp("registry")
     out = {}
@@ -71,15 +79,24 @@ def exported(tmp_path_factory) -> dict[str, tuple[NPE, OnnxPosterior, Path]]:
         ("features", _features_model(1, 1)),
         ("ensemble", _features_model(2, 2, context_layers=(16, 10))),
         ("cnn", _cnn_model(3)),
+        ("regime", _features_model(2, 4, context_layers=(16, 10), regime_temperature=True)),
     ):
-        if name != "features":
+        if name == "regime":
+            model.set_temperature(
+                torch.stack([torch.linspace(0.7, 1.3, model.dim), torch.linspace(1.4, 0.8, model.dim)])
+            )
+            with torch.no_grad():  # a gate centred on the model's inputs: p(c) spreads over (0, 1)
+                c = model.context(torch.as_tensor(_inputs(model, 256, seed=99)))
+            weight = 3.0 * torch.linspace(-1.0, 1.0, 10) / c.std(0)
+            model.set_regime_gate(weight, -(c.mean(0) @ weight))
+        elif name != "features":
             model.set_temperature(torch.linspace(0.7, 1.3, model.dim))
         folder = export_posterior(model, root / name, card={"backbone": name, "train_size": 7}, exporter="torchscript")
         out[name] = (model, OnnxPosterior.load(folder), folder)
     return out
 
 
-KINDS = ["features", "ensemble", "cnn"]
+KINDS = ["features", "ensemble", "cnn", "regime"]
 
 
 def _theta(b: int, seed: int) -> np.ndarray:
@@ -109,6 +126,14 @@ def _torch_draws(model: NPE, x: np.ndarray, eps: np.ndarray, members: np.ndarray
         z64 = z.double()
         theta = model.bijection.to_physical(z64)
         return theta.numpy(), (log_qz.double() - model.bijection.log_abs_det_jacobian(z64)).numpy()
+
+
+def test_the_regime_models_inputs_span_both_regimes(exported):
+    """The graph checks of the ``regime`` model (9 inputs of seed 11) see gates near 0, near 1 and between."""
+    model, _, _ = exported["regime"]
+    with torch.no_grad():
+        p = model.regime_probability(model.context(torch.as_tensor(_inputs(model, 9, seed=11)))).numpy()
+    assert p.min() < 0.1 and p.max() > 0.9 and ((p > 0.2) & (p < 0.8)).any(), np.sort(p)
 
 
 @pytest.mark.parametrize("kind", KINDS)

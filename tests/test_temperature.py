@@ -37,19 +37,23 @@ def toy() -> NPE:
     return _fit()
 
 
-def test_tempered_density_integrates_to_one_and_matches_its_draws(toy: NPE) -> None:
-    model = copy.deepcopy(toy)
-    model.set_temperature(torch.tensor([1.3, 0.8]))
-    x = torch.tensor(simulate(seeding.rng(0, "temperature", "x"), 3)[0])
-    k = 300
+def assert_proper_and_self_consistent(model: NPE, x: torch.Tensor, k: int = 300) -> None:
+    """The toy model's density at inputs ``x`` integrates to one on a k × k grid of the box, and the log-density of its
+    draws equals its density at them."""
     g = [BOX.low[i] + (np.arange(k) + 0.5) / k * BOX.width[i] for i in range(2)]
-    grid = torch.tensor(np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(1, -1, 2).repeat(3, 0))
+    grid = torch.tensor(np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(1, -1, 2).repeat(len(x), 0))
     with torch.no_grad():
         q = torch.exp(model.log_prob(grid, x)).double().numpy()
         theta, log_q = model.sample_and_log_prob(x, 50, rng=1)
         again = model.log_prob(theta.double(), x)
     np.testing.assert_allclose(q.sum(1) * np.prod(BOX.width) / k**2, 1.0, atol=0.02)
     np.testing.assert_allclose(log_q.numpy(), again.numpy(), atol=2e-3)
+
+
+def test_tempered_density_integrates_to_one_and_matches_its_draws(toy: NPE) -> None:
+    model = copy.deepcopy(toy)
+    model.set_temperature(torch.tensor([1.3, 0.8]))
+    assert_proper_and_self_consistent(model, torch.tensor(simulate(seeding.rng(0, "temperature", "x"), 3)[0]))
     np.testing.assert_allclose(model.temperature.numpy(), [1.3, 0.8], rtol=1e-6)
 
 

@@ -50,11 +50,13 @@ def test_train_logs_the_grid_in_mlflow_and_saves_a_loadable_model(project, monke
     theta = torch.tensor([[50.0, 10.0, 20.0, 30.0, 40.0, 50.0]])
     x = torch.zeros(1, header["features"])
     assert torch.isfinite(model.log_prob(theta, x)).all()
-    # the base scale τ fitted on the validation split (train.temperature) is saved with the model and reported
+    # the base scales τ fitted on the validation split (train.temperature), outside and inside the regime
+    # (train.temperature_regime: night), are saved with the model and reported, with the gate's accuracy
     names = header["box"]["names"]
-    tau = [metrics[f"temperature.{name}"] for name in names]
+    tau = [[metrics[f"{prefix}.{name}"] for name in names] for prefix in ("temperature", "temperature_night")]
     np.testing.assert_allclose(model.temperature.numpy(), tau, rtol=1e-6)
-    assert all(t > 0 for t in tau) and tau != [1.0] * len(tau) and metrics["heldout_nll_gain"] >= 0
+    assert all(t > 0 for row in tau for t in row) and tau[0] != tau[1] and metrics["heldout_nll_gain"] >= 0
+    assert 0 < metrics["regime_share"] < 1 and 0 <= metrics["regime_gate_accuracy"] <= 1
 
     train_model("cnn", 8, str(params))  # a backbone trained jointly with the flow
     cnn, h = load_npe(folder / "models/cnn-8/model.pt")

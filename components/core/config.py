@@ -156,6 +156,16 @@ class VariantConfig(_Section):
     ensemble: PositiveInt
 
 
+class TemperatureRegimeConfig(_Section):
+    """A second base scale τ for the inputs whose θ[parameter] < below (components/posterior/regime.py)."""
+
+    #: the regime's name in the models' metrics (``temperature_<name>.<parameter>``)
+    name: Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")]
+    #: the predicted parameter that defines the regime, and the value below which an input lies in it
+    parameter: str
+    below: float
+
+
 class TrainConfig(_Section):
     """The grid of models (backbone × training size) and how each is trained."""
 
@@ -208,6 +218,9 @@ class TrainConfig(_Section):
     #: after training, fit the flows' base scale τ (one per parameter) on the validation split by maximum
     #: likelihood (post-hoc calibration, components/posterior/temperature.py); false: τ = 1
     temperature: bool
+    #: with ``temperature``: one τ outside and one inside this regime, blended per input by a logistic gate on the
+    #: flows' context fitted on the training split (components/posterior/regime.py); null: one τ for every input
+    temperature_regime: TemperatureRegimeConfig | None
     #: a model trained for at least this many optimizer steps compiles its training loss with torch.compile (35–50 s
     #: once per model shape, then 1.7–1.9× faster steps); null: never (components/posterior/settings.py)
     compile_min_steps: NonNegativeInt | None
@@ -493,6 +506,20 @@ class Params(_Section):
                 raise ValueError(
                     f"train.variants.{name} needs a backbone in backbones.names and a size in "
                     f"train.sizes, got {v.backbone!r} and {v.size}"
+                )
+        regime = self.train.temperature_regime
+        if regime is not None:
+            box = self.box
+            if regime.parameter not in box.names:
+                raise ValueError(
+                    f"train.temperature_regime.parameter is {regime.parameter!r}, not one of the prior's parameters "
+                    f"({', '.join(box.names)})"
+                )
+            i = box.names.index(regime.parameter)
+            if not box.low[i] < regime.below < box.high[i]:
+                raise ValueError(
+                    f"train.temperature_regime.below = {regime.below:g} must lie inside the prior of "
+                    f"{regime.parameter}, ({box.low[i]:g}, {box.high[i]:g}): both regimes need inputs"
                 )
         if self.evaluate.images != "all" and self.evaluate.images > self.data.splits["test"]:
             raise ValueError(

@@ -6,7 +6,8 @@
 * :mod:`~components.posterior.loss` — the NPE loss (physical units) and balanced NPE's penalty;
 * :mod:`~components.posterior.checkpoint` — atomic checkpoint files;
 * :mod:`~components.posterior.train` — :func:`train` with :class:`TrainingConfig`, returning a :class:`History`;
-* :mod:`~components.posterior.temperature` — post-hoc calibration: the flows' base scale τ fitted on held-out pairs.
+* :mod:`~components.posterior.temperature` — post-hoc calibration: the flows' base scale τ fitted on held-out pairs;
+* :mod:`~components.posterior.regime` — a base scale per regime (day and night), blended by a gate on the context.
 
 Used by the ``train`` and ``export`` stages (``metrics``, ``settings`` and ``temperature`` by
 ``train`` only).

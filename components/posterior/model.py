@@ -12,7 +12,9 @@ zuko's splines act (outside it they are the identity). ``NPE.flow(x)`` returns t
 this scaling included.
 
 Each flow ends with the fixed scaling ε ↦ ε / τ, τ = :attr:`NPE.temperature` (ones until fitted on held-out data by
-:mod:`components.posterior.temperature`): the base is N(0, diag τ²).
+:mod:`components.posterior.temperature`): the base is N(0, diag τ²). With ``FlowConfig.regime_temperature`` τ depends
+on the context, blended between two regimes (e.g. day and night) by a gate on the context
+(:class:`~components.posterior.regime.RegimeTemperature`).
 
 With ``FlowConfig.ensemble = K > 1`` the estimator is the equal-weight mixture of K flows with independent
 initializations sharing the embedding and the context network: ``q(θ | x) = (1/K) Σₖ qₖ(θ | x)``. The members are
@@ -35,6 +37,7 @@ from torch.distributions import AffineTransform, Distribution
 from components.core import seeding, weather
 from components.posterior.bijection import Z_MAX, ScaledLogit, as_interval_box
 from components.posterior.mixture import EqualMixture, draw_flow, standard_normal
+from components.posterior.regime import RegimeTemperature
 
 __all__ = ["FlowConfig", "NPE", "Z_SCALE"]
 
@@ -56,6 +59,8 @@ class FlowConfig:
         context_layers: widths of the context network, a multilayer perceptron (SiLU between its linear layers)
             from the embedding's features to the flows' context ``c``, shared by the ensemble's members; its last width
             is the context size. ``()`` = none: the features are the context.
+        regime_temperature: the flows' base scale τ(c) depends on the context, one τ per regime blended by the
+            probability of the regime (:class:`~components.posterior.regime.RegimeTemperature`); False: one τ.
     """
 
     transforms: int = 3
@@ -65,6 +70,7 @@ class FlowConfig:
     standardize: bool = True
     ensemble: int = 1
     context_layers: tuple[int, ...] = ()
+    regime_temperature: bool = False
 
     def __post_init__(self) -> None:
         for name in ("hidden_features", "context_layers"):
@@ -89,7 +95,8 @@ class FlowConfig:
 
 
 def _build_flow(dim: int, context: int, config: FlowConfig, seed: int) -> zuko.flows.Flow:
-    """One conditional NSF over z ∈ ℝᵈ, preceded by the fixed scaling z ↦ z / Z_SCALE; weights from ``seed``."""
+    """One conditional NSF over z ∈ ℝᵈ, preceded by the fixed scaling z ↦ z / Z_SCALE and followed by the base scale
+    ε ↦ ε / τ (per regime with ``config.regime_temperature``); weights from ``seed``."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         nsf = zuko.flows.NSF(
@@ -103,9 +110,13 @@ def _build_flow(dim: int, context: int, config: FlowConfig, seed: int) -> zuko.f
     scale = zuko.flows.UnconditionalTransform(
         AffineTransform, loc=torch.tensor(0.0), scale=torch.tensor(1.0 / Z_SCALE), buffer=True
     )
-    temper = zuko.flows.UnconditionalTransform(
-        AffineTransform, loc=torch.zeros(dim), scale=torch.ones(dim), buffer=True
-    )
+    temper: zuko.flows.LazyTransform
+    if config.regime_temperature:
+        temper = RegimeTemperature(dim, context)
+    else:
+        temper = zuko.flows.UnconditionalTransform(
+            AffineTransform, loc=torch.zeros(dim), scale=torch.ones(dim), buffer=True
+        )
     return zuko.flows.Flow([scale, *nsf.transform.transforms, temper], nsf.base)
 
 
@@ -213,19 +224,55 @@ class NPE(nn.Module):
 
     @property
     def temperature(self) -> Tensor:
-        """τ ``(d,)``, the base distribution's scale N(0, diag τ²) (ones until
-        :func:`~components.posterior.temperature.calibrate`)."""
-        return 1.0 / self.flows[0].transform.transforms[-1].scale
+        """τ, the base distribution's scale N(0, diag τ²) (ones until
+        :func:`~components.posterior.temperature.calibrate`): ``(d,)``, or ``(2, d)`` with a regime temperature (rows:
+        outside, inside the regime)."""
+        last = self.flows[0].transform.transforms[-1]
+        if isinstance(last, RegimeTemperature):
+            return last.log_tau.exp()
+        return 1.0 / last.scale
 
     @torch.no_grad()
     def set_temperature(self, tau: Tensor) -> None:
-        """Set τ ``(d,)`` > 0 in every member: the flows' last transform becomes ε ↦ ε / τ."""
+        """Set τ > 0 in every member: ``(d,)`` (with a regime temperature: the same in both regimes) or ``(2, d)``
+        (a regime temperature's rows: outside, inside the regime)."""
         tau = torch.as_tensor(tau, dtype=torch.float64)
-        if tau.shape != (self.dim,) or not bool(torch.isfinite(tau).all()) or not bool((tau > 0).all()):
-            raise ValueError(f"the temperature τ must be {self.dim} finite positive numbers, got {tau.tolist()}")
+        regime = self.config.regime_temperature
+        shapes = [(self.dim,), (2, self.dim)] if regime else [(self.dim,)]
+        if tau.shape not in shapes or not bool(torch.isfinite(tau).all()) or not bool((tau > 0).all()):
+            what = f"{self.dim} or 2 × {self.dim}" if regime else f"{self.dim}"
+            raise ValueError(f"the temperature τ must be {what} finite positive numbers, got {tau.tolist()}")
         for flow in self.flows:
             last = flow.transform.transforms[-1]
-            last.scale.copy_((1.0 / tau).to(last.scale))
+            if regime:
+                last.log_tau.copy_(tau.log().expand(2, self.dim).to(last.log_tau))
+            else:
+                last.scale.copy_((1.0 / tau).to(last.scale))
+
+    def _regime(self) -> RegimeTemperature:
+        last = self.flows[0].transform.transforms[-1]
+        if not isinstance(last, RegimeTemperature):
+            raise ValueError("this model has one base scale τ: build it with FlowConfig(regime_temperature=True)")
+        return last
+
+    @torch.no_grad()
+    def set_regime_gate(self, weight: Tensor, bias: Tensor) -> None:
+        """Set the gate p(c) = σ(w · c + b) of the regime temperature in every member: ``weight (F,)``, ``bias ()``."""
+        features = self._regime().weight.shape[0]
+        weight, bias = torch.as_tensor(weight), torch.as_tensor(bias)
+        if weight.shape != (features,) or bias.shape != () or not bool(torch.isfinite(weight).all() & bias.isfinite()):
+            raise ValueError(
+                f"the regime gate needs a finite weight ({features},) and bias (), got {tuple(weight.shape)}, "
+                f"{tuple(bias.shape)}"
+            )
+        for flow in self.flows:
+            last = flow.transform.transforms[-1]
+            last.weight.copy_(weight.to(last.weight))
+            last.bias.copy_(bias.to(last.bias))
+
+    def regime_probability(self, context: Tensor) -> Tensor:
+        """p(c), the gate's probability that inputs of :meth:`context` ``(B, F)`` lie in the regime: ``(B,)``."""
+        return self._regime().probability(context)
 
     @property
     def dtype(self) -> torch.dtype:

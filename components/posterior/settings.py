@@ -14,14 +14,17 @@ from dataclasses import fields
 from typing import TYPE_CHECKING, Any
 
 from components.posterior.model import FlowConfig
+from components.posterior.temperature import Regime
 from components.posterior.train import TrainingConfig
 
 if TYPE_CHECKING:
     from components.core.config import TrainConfig
+    from components.core.weather import Box
 
 __all__ = [
     "flow_config",
     "training_config",
+    "temperature_regime",
     "epochs_for",
     "patience_for",
     "hidden_for",
@@ -98,9 +101,19 @@ def flow_config(train_section: TrainConfig, *, size: int, trainable: bool, ensem
                 standardize=f.standardize,
                 ensemble=ensemble_for(train_section, size) if ensemble is None else ensemble,
                 context_layers=() if trainable else tuple(f.context_layers),
+                regime_temperature=train_section.temperature and train_section.temperature_regime is not None,
             ),
         )
     )
+
+
+def temperature_regime(train_section: TrainConfig, box: Box) -> Regime | None:
+    """The regime of the flows' second base scale τ (``train.temperature_regime``, θ's index in ``box``), or None: one
+    τ (no regime given, or ``train.temperature`` off)."""
+    r = train_section.temperature_regime
+    if not train_section.temperature or r is None:
+        return None
+    return Regime(index=list(box.names).index(r.parameter), below=r.below, name=r.name)
 
 
 def epochs_for(train_section: TrainConfig, size: int, *, trainable: bool) -> int:

@@ -13,19 +13,40 @@ pairs (the validation split): for one flow the optimum is τ_d² = mean εᵢ_d�
 by L-BFGS over log τ. This is temperature scaling (Guo et al. 2017) moved to the flow's base; measured in
 BENCHMARKS.md ("Calibration levers").
 
+A model with a regime temperature (:mod:`components.posterior.regime`) has two τ, blended per input by a gate on its
+context: :func:`fit_regime_gate` fits the gate on the training pairs (the regime is known from their θ), then
+:func:`calibrate` fits both τ by maximum likelihood on the held-out pairs, each pair weighted by its gate
+(BENCHMARKS.md, "A base scale for the night").
+
 Used by the ``train`` and ``variant`` stages.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from components.posterior.model import NPE
+from components.posterior.regime import fit_gate
 
-__all__ = ["base_points", "tempered_nll", "fit_temperature", "calibrate"]
+__all__ = ["Regime", "base_points", "tempered_nll", "fit_temperature", "fit_regime_gate", "calibrate"]
+
+
+@dataclass(frozen=True)
+class Regime:
+    """The inputs whose true ``θ[index] < below`` (e.g. the sun below the horizon), named ``name`` in messages."""
+
+    index: int
+    below: float
+    name: str
+
+    def holds(self, theta: Tensor) -> Tensor:
+        """Whether each θ ``(N, d)`` (physical units) lies in the regime: ``(N,)`` bool."""
+        return theta[:, self.index] < self.below
 
 
 @torch.no_grad()
@@ -52,33 +73,31 @@ def base_points(model: NPE, x: Tensor, theta: Tensor, batch: int = 512) -> tuple
 
 
 def tempered_nll(eps: Tensor, ladj: Tensor, tau: Tensor) -> Tensor:
-    """Mean −log q_τ over the pairs (up to the bijection's τ-free Jacobian): ``ε (K, N, d)``, ``ladj (K, N)``, τ (d,)."""
+    """Mean −log q_τ over the pairs (up to the bijection's τ-free Jacobian): ``ε (K, N, d)``, ``ladj (K, N)``, τ ``(d,)``
+    or one per pair ``(N, d)``."""
     d = eps.shape[-1]
     members = (-0.5 * (eps / tau) ** 2 - torch.log(tau)).sum(-1) - 0.5 * d * math.log(2 * math.pi) + ladj
     return -(torch.logsumexp(members, dim=0) - math.log(eps.shape[0])).mean()
 
 
-def fit_temperature(eps: Tensor, ladj: Tensor) -> Tensor:
-    """The maximum-likelihood τ ``(d,)`` of base points ``ε (K, N, d)`` with log-Jacobians ``ladj (K, N)``.
-
-    K = 1: τ_d = √(mean ε_d²) exactly. K > 1: L-BFGS on log τ from the members' pooled closed form.
-    """
+def _checked(eps: Tensor, ladj: Tensor) -> tuple[Tensor, Tensor]:
     if eps.dim() != 3 or ladj.shape != eps.shape[:2] or eps.shape[1] < 2:
         raise ValueError(
             f"base points must be (K, N ≥ 2, d) with ladj (K, N), got {tuple(eps.shape)}, {tuple(ladj.shape)}"
         )
     if not bool(torch.isfinite(eps).all()) or not bool(torch.isfinite(ladj).all()):
         raise ValueError("the held-out base points are not finite: the flow maps a held-out θ to infinity")
-    eps, ladj = eps.double(), ladj.double()
-    start = eps.pow(2).mean(dim=(0, 1)).sqrt()
-    if eps.shape[0] == 1:
-        return start
+    return eps.double(), ladj.double()
+
+
+def _maximize(eps: Tensor, ladj: Tensor, start: Tensor, tau_of: Callable[[Tensor], Tensor]) -> Tensor:
+    """L-BFGS on ``log τ`` from ``start``: the maximum of the tempered likelihood with τ = ``tau_of(exp(log τ))``."""
     log_tau = start.log().clone().requires_grad_(True)
     opt = torch.optim.LBFGS([log_tau], max_iter=100, tolerance_grad=1e-9, line_search_fn="strong_wolfe")
 
     def closure() -> Tensor:
         opt.zero_grad()
-        loss = tempered_nll(eps, ladj, log_tau.exp())
+        loss = tempered_nll(eps, ladj, tau_of(log_tau))
         loss.backward()
         return loss
 
@@ -87,16 +106,86 @@ def fit_temperature(eps: Tensor, ladj: Tensor) -> Tensor:
     return log_tau.detach().exp()
 
 
-def calibrate(model: NPE, x: Tensor, theta: Tensor) -> dict[str, float]:
+def fit_temperature(eps: Tensor, ladj: Tensor, gate: Tensor | None = None) -> Tensor:
+    """The maximum-likelihood τ of base points ``ε (K, N, d)`` with log-Jacobians ``ladj (K, N)``.
+
+    Without ``gate``: τ ``(d,)``; K = 1: τ_d = √(mean ε_d²) exactly, K > 1: L-BFGS on log τ from the members' pooled
+    closed form. With ``gate`` p ``(N,)`` in [0, 1], each pair's probability of lying in the regime: τ ``(2, d)``
+    (rows: outside, inside the regime), pair i tempered by log τᵢ = (1 − pᵢ) log τ_out + pᵢ log τ_in; L-BFGS from the
+    closed forms of the pairs on either side of p = ½.
+    """
+    eps, ladj = _checked(eps, ladj)
+    if gate is None:
+        start = eps.pow(2).mean(dim=(0, 1)).sqrt()
+        if eps.shape[0] == 1:
+            return start
+        return _maximize(eps, ladj, start, torch.exp)
+    p = torch.as_tensor(gate, dtype=torch.float64)
+    if p.shape != eps.shape[1:2] or not bool(((p >= 0) & (p <= 1)).all()):
+        raise ValueError(f"the gate must be {eps.shape[1]} probabilities in [0, 1], one per pair, got {tuple(p.shape)}")
+    sides = [p < 0.5, p >= 0.5]
+    if not all(bool(side.sum() >= 2) for side in sides):
+        raise ValueError(
+            f"the gate puts {int(sides[1].sum())} of the {len(p)} held-out pairs in the regime: a base scale per regime "
+            "needs at least two pairs on each side (a larger validation split, or train.temperature_regime: null)"
+        )
+    start = torch.stack([eps[:, side].pow(2).mean(dim=(0, 1)).sqrt() for side in sides])
+    w = p.unsqueeze(-1)
+    return _maximize(eps, ladj, start, lambda log_tau: torch.exp((1 - w) * log_tau[0] + w * log_tau[1]))
+
+
+@torch.no_grad()
+def _contexts(model: NPE, x: Tensor, batch: int = 4096) -> Tensor:
+    return torch.cat([model.context(x[a : a + batch]) for a in range(0, len(x), batch)])
+
+
+def fit_regime_gate(model: NPE, x: Tensor, theta: Tensor, regime: Regime) -> dict[str, float]:
+    """Fit the gate of ``model``'s regime temperature on training pairs ``x (N, …)``, ``θ (N, d)`` (physical units):
+    a logistic regression of ``regime.holds(θ)`` on the contexts (:func:`~components.posterior.regime.fit_gate`).
+
+    Returns ``{"regime_share": …, "regime_gate_train_accuracy": …}``.
+    """
+    context = _contexts(model, x)
+    inside = regime.holds(theta)
+    weight, bias = fit_gate(context, inside)
+    model.set_regime_gate(weight, bias)
+    accuracy = float(((model.regime_probability(context) >= 0.5) == inside).double().mean())
+    return {"regime_share": float(inside.double().mean()), "regime_gate_train_accuracy": accuracy}
+
+
+def calibrate(model: NPE, x: Tensor, theta: Tensor, regime: Regime | None = None) -> dict[str, float]:
     """Fit τ on held-out pairs ``x (N, …)``, ``θ (N, d)`` (physical units), set it on ``model``, and report it.
 
+    A model with a regime temperature needs ``regime`` and its fitted gate (:func:`fit_regime_gate`): both τ are fitted,
+    each pair weighted by its gate.
+
     Returns ``{"temperature.<name>": τ_d, …, "heldout_nll_gain": …}``: τ per parameter (the base's dimensions, in
-    the order of ``model.box.names``) and the held-out NLL saved by τ (nats per pair, ≥ 0).
+    the order of ``model.box.names``) and the held-out NLL saved by τ (nats per pair, ≥ 0); with a regime, τ outside it
+    as ``temperature.<name>``, inside it as ``temperature_<regime>.<name>``, and ``regime_gate_accuracy``, the share
+    of the held-out pairs on the side of p = ½ that their θ puts them.
     """
+    if model.config.regime_temperature != (regime is not None):
+        raise ValueError(
+            "a model with a regime temperature needs the regime (train.temperature_regime), and only such a model: "
+            f"regime_temperature={model.config.regime_temperature}, regime={regime}"
+        )
     eps, ladj = base_points(model, x, theta)
-    tau = fit_temperature(eps, ladj)
-    before = float(tempered_nll(eps, ladj, torch.ones_like(tau)))
-    after = float(tempered_nll(eps, ladj, tau))
+    gate = None
+    extra: dict[str, float] = {}
+    if regime is not None:
+        gate = model.regime_probability(_contexts(model, x)).double()
+        extra["regime_gate_accuracy"] = float(((gate >= 0.5) == regime.holds(theta)).double().mean())
+    tau = fit_temperature(eps, ladj, gate)
+    per_pair = tau if gate is None else torch.exp((1 - gate[:, None]) * tau[0].log() + gate[:, None] * tau[1].log())
+    before = float(tempered_nll(eps, ladj, torch.ones(model.dim, dtype=torch.float64)))
+    after = float(tempered_nll(eps, ladj, per_pair))
     model.set_temperature(tau)
-    out = {f"temperature.{name}": float(t) for name, t in zip(model.box.names, tau.tolist(), strict=True)}
-    return {**out, "heldout_nll_gain": before - after}
+    names = model.box.names
+    rows = [tau] if gate is None else [tau[0], tau[1]]
+    prefixes = ["temperature"] if gate is None else ["temperature", f"temperature_{regime.name}"]  # type: ignore[union-attr]
+    out = {
+        f"{prefix}.{name}": float(t)
+        for prefix, row in zip(prefixes, rows, strict=True)
+        for name, t in zip(names, row.tolist(), strict=True)
+    }
+    return {**out, **extra, "heldout_nll_gain": before - after}

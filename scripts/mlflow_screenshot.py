@@ -219,6 +219,24 @@ def _click(page, target, timeout_s: float = TIMEOUT_MS / 1000) -> None:
                 raise UIError(f"could not click {target} within {timeout_s:.0f} s ({e})", page) from None
 
 
+def _show_runs(page, timeout_s: float = 2 * TIMEOUT_MS / 1000) -> None:
+    """The workflow toggle → *Model training*, until the runs table says how many runs match. On a loaded machine a
+    click can land before the page has wired the toggle and be lost (CI, 2026-11-26: no table after 60 s, a rerun
+    passed), so the toggle is clicked again each 20 s the count does not show, up to ``timeout_s``."""
+    count = page.get_by_text(re.compile(r"\d+ matching runs?")).first
+    deadline = time.monotonic() + timeout_s
+    while True:
+        _click(page, page.get_by_text("Model training", exact=True))
+        try:
+            count.wait_for(state="visible", timeout=20_000)
+            return
+        except Exception as e:  # playwright's TimeoutError
+            if time.monotonic() > deadline:
+                raise UIError(
+                    f"no runs table ('N matching runs') within {timeout_s:.0f} s of clicks ({e})", page
+                ) from None
+
+
 def _set_column(page, name: str, shown: bool = True, timeout_s: float = 30) -> bool:
     """Columns → type ``name`` into the search → tick it (``shown``) or untick it; False when the menu has not offered
     it within ``timeout_s`` (the menu lists the metrics and tags of the runs loaded so far: it is tried again until
@@ -344,8 +362,7 @@ def compare_models(
         _click(page, page.get_by_role("link", name=experiment, exact=True))
         _click_if_shown(page.get_by_role("button", name="Got it"), 5_000)
         # 2. the workflow toggle → Model training: the runs table
-        _click(page, page.get_by_text("Model training", exact=True))
-        page.get_by_text(re.compile(r"\d+ matching runs?")).first.wait_for()
+        _show_runs(page)
         # 3. the assistant panel
         _close_assistant(page)
         # 4. the newest grid run (runs are sorted newest first): its expander (the one button of its Run Name cell)

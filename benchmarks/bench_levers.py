@@ -68,7 +68,7 @@ from components.features.backbones.cues import MIRROR  # noqa: E402
 from components.features.backbones.tiny import TinyImagesBackbone  # noqa: E402
 from components.posterior import NPE, train  # noqa: E402
 from components.posterior.settings import flow_config, temperature_regime, training_config  # noqa: E402
-from components.posterior.temperature import calibrate, fit_regime_gate  # noqa: E402
+from components.posterior.temperature import calibrate_post_hoc  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 
 _SETTING = re.compile(
@@ -163,10 +163,9 @@ def fit(
     history = train(model, (x["train"], theta["train"]), (x["val"], theta["val"]), tc, mirror=mirror)
     model.eval()
     # the pipeline's calibration: the regime's gate on the training pairs, then τ on the validation split
-    regime = temperature_regime(params.train, params.box) if s["temperature"] else None
-    if regime is not None:
-        fit_regime_gate(model, x["train"], theta["train"], regime)
-    tempered = calibrate(model, x["val"], theta["val"], regime) if s["temperature"] else {}
+    regime = temperature_regime(params.train, params.box)
+    pairs = {k: (x[k], theta[k]) for k in ("train", "val")}
+    tempered = calibrate_post_hoc(model, pairs["train"], pairs["val"], regime) if s["temperature"] else {}
     seconds = time.perf_counter() - t0
     return {
         **s,

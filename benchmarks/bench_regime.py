@@ -36,7 +36,7 @@ from components.features.backbones import get_backbone  # noqa: E402
 from components.posterior.model import NPE  # noqa: E402
 from components.posterior.settings import temperature_regime  # noqa: E402
 from components.posterior.store import load_npe  # noqa: E402
-from components.posterior.temperature import calibrate, fit_regime_gate  # noqa: E402
+from components.posterior.temperature import calibrate_post_hoc  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 
 SHORT = ("cloud", "fog", "rain", "sun", "wind", "deposits")
@@ -96,12 +96,13 @@ def main(argv: list[str] | None = None) -> None:
     rows = {}
     t0 = time.perf_counter()
     one = with_flows_of(trained, regime=False)
-    rows["one τ"] = {**calibrate(one, *data["val"]), **score(one, *data["test"], args.samples, params.box)}
+    rows["one τ"] = {
+        **calibrate_post_hoc(one, None, data["val"], None),
+        **score(one, *data["test"], args.samples, params.box),
+    }
     per = with_flows_of(trained, regime=True)
-    gate = fit_regime_gate(per, *data["train"], regime)
     rows[f"τ per regime ({regime.name})"] = {
-        **gate,
-        **calibrate(per, *data["val"], regime),
+        **calibrate_post_hoc(per, data["train"], data["val"], regime),
         **score(per, *data["test"], args.samples, params.box),
     }
     print(f"{args.model}: central 68 % coverage (%) of {' / '.join(SHORT)}, {args.samples} draws per test image")

@@ -60,7 +60,7 @@ from components.core.config import load_params  # noqa: E402
 from components.features.backbones.cues import CuesBackbone  # noqa: E402
 from components.posterior import NPE  # noqa: E402
 from components.posterior.settings import ensemble_for, flow_config, temperature_regime, training_config  # noqa: E402
-from components.posterior.temperature import calibrate, fit_regime_gate  # noqa: E402
+from components.posterior.temperature import calibrate_post_hoc  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 from components.simulate.procedural import ProceduralSimulator  # noqa: E402
 
@@ -206,9 +206,8 @@ def train_hybrid(
 
     flow.eval()
     regime = temperature_regime(params.train, params.box)  # the pipeline's: a gate on the training pairs, then τ
-    if regime is not None:
-        fit_regime_gate(flow, contexts(images, cues), th, regime)
-    tempered = calibrate(flow, contexts(val[0], val[1]), val[2].to(device), regime)
+    train_pairs = (contexts(images, cues), th) if regime is not None else None
+    tempered = calibrate_post_hoc(flow, train_pairs, (contexts(val[0], val[1]), val[2].to(device)), regime)
     return (
         flow,
         contexts,

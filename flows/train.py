@@ -32,7 +32,7 @@ from components.posterior import NPE, train
 from components.posterior.metrics import mean_nll
 from components.posterior.settings import ensemble_for, flow_config, temperature_regime, training_config
 from components.posterior.store import save_npe
-from components.posterior.temperature import calibrate, fit_regime_gate
+from components.posterior.temperature import calibrate_post_hoc
 from components.simulate import dataset
 from flows import tracking
 from flows.stage import at_most, open_stage, parse_stage_args, share_api_with_workers, task_runner
@@ -164,12 +164,9 @@ def train_model(
         model.eval()
         # post-hoc calibration on the validation split (deterministic: resuming re-fits the same τ); with a regime,
         # its gate is fitted on the training pairs first
-        tempered: dict[str, float] = {}
+        pairs = {k: (x[k], torch.from_numpy(theta[k])) for k in ("train", "val")}
         regime = temperature_regime(params.train, params.box)
-        if regime is not None:
-            tempered |= fit_regime_gate(model, x["train"], torch.from_numpy(theta["train"]), regime)
-        if params.train.temperature:
-            tempered |= calibrate(model, x["val"], torch.from_numpy(theta["val"]), regime)
+        tempered = calibrate_post_hoc(model, pairs["train"], pairs["val"], regime) if params.train.temperature else {}
         test_nll = mean_nll(model, x["test"], theta["test"])
         metrics = {
             "test_nll": test_nll,

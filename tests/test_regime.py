@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from benchmarks.bench_regime import with_flows_of
 from components.core import seeding
 from components.posterior.model import NPE, FlowConfig
 from components.posterior.regime import RegimeTemperature, fit_gate
@@ -39,20 +40,9 @@ def _gated(model: NPE, seed: int) -> NPE:
     return model
 
 
-def _as_regime_model(plain: NPE) -> NPE:
-    """A regime-temperature model with ``plain``'s weights (τ = 1 in both regimes, gate unfitted)."""
-    config = FlowConfig(**{**plain.config.__dict__, "regime_temperature": True})
-    model = NPE(None, plain.features, BOX, config).eval()
-    last = f"transform.transforms.{len(plain.flows[0].transform.transforms) - 1}."  # the single τ
-    weights = {k: v for k, v in plain.state_dict().items() if last not in k}
-    missing, unexpected = model.load_state_dict(weights, strict=False)
-    assert not unexpected and all(k.endswith(("log_tau", "weight", "bias")) for k in missing), missing
-    return model
-
-
 def test_regime_density_integrates_to_one_and_matches_its_draws() -> None:
     """The toy's trained NPE (posteriors ≥ 0.08 of the range wide: a 300 × 300 grid resolves them) with two τ."""
-    model = _gated(_as_regime_model(_fit()), 0)
+    model = _gated(with_flows_of(_fit(), regime=True), 0)
     tau = torch.tensor([[1.2, 0.8], [0.8, 0.9]])
     model.set_temperature(tau)
     # a clear day, a clear night and one near the horizon
@@ -101,7 +91,7 @@ def test_fit_recovers_known_regime_temperatures(ensemble: int, tolerance: float)
 def test_one_temperature_for_both_regimes_is_the_single_scale() -> None:
     """τ_in = τ_out: the regime model's density is the plain model's with that τ, whatever the gate says."""
     plain = _model(1, 11, regime=False)
-    regime = _gated(_as_regime_model(plain), 3)
+    regime = _gated(with_flows_of(plain, regime=True), 3)
     plain.set_temperature(TAU[0])
     regime.set_temperature(TAU[0])
     x, theta = simulate(seeding.rng(0, "regime", "same"), 50)

@@ -101,17 +101,22 @@ def flow_config(train_section: TrainConfig, *, size: int, trainable: bool, ensem
                 standardize=f.standardize,
                 ensemble=ensemble_for(train_section, size) if ensemble is None else ensemble,
                 context_layers=() if trainable else tuple(f.context_layers),
-                regime_temperature=train_section.temperature and train_section.temperature_regime is not None,
+                regime_temperature=_regime_on(train_section),
             ),
         )
     )
+
+
+def _regime_on(train_section: TrainConfig) -> bool:
+    """Whether the flows get a second base scale τ: ``train.temperature`` on and a ``train.temperature_regime``."""
+    return train_section.temperature and train_section.temperature_regime is not None
 
 
 def temperature_regime(train_section: TrainConfig, box: Box) -> Regime | None:
     """The regime of the flows' second base scale τ (``train.temperature_regime``, θ's index in ``box``), or None: one
     τ (no regime given, or ``train.temperature`` off)."""
     r = train_section.temperature_regime
-    if not train_section.temperature or r is None:
+    if r is None or not _regime_on(train_section):
         return None
     return Regime(index=list(box.names).index(r.parameter), below=r.below, name=r.name)
 

@@ -33,7 +33,15 @@ from torch import Tensor
 from components.posterior.model import NPE
 from components.posterior.regime import fit_gate
 
-__all__ = ["Regime", "base_points", "tempered_nll", "fit_temperature", "fit_regime_gate", "calibrate"]
+__all__ = [
+    "Regime",
+    "base_points",
+    "tempered_nll",
+    "fit_temperature",
+    "fit_regime_gate",
+    "calibrate",
+    "calibrate_post_hoc",
+]
 
 
 @dataclass(frozen=True)
@@ -189,3 +197,16 @@ def calibrate(model: NPE, x: Tensor, theta: Tensor, regime: Regime | None = None
         for name, t in zip(names, row.tolist(), strict=True)
     }
     return {**out, **extra, "heldout_nll_gain": before - after}
+
+
+def calibrate_post_hoc(
+    model: NPE, train: tuple[Tensor, Tensor] | None, heldout: tuple[Tensor, Tensor], regime: Regime | None
+) -> dict[str, float]:
+    """The pipeline's post-hoc calibration of a trained ``model``: with a ``regime``, its gate on the ``train`` pairs
+    ``(x, θ)`` (:func:`fit_regime_gate`; ``train`` may be None without a regime), then τ on the ``heldout`` pairs
+    (:func:`calibrate`). Returns both reports, merged."""
+    if regime is None:
+        return calibrate(model, *heldout)
+    if train is None:
+        raise ValueError(f"the regime {regime.name!r} needs training pairs to fit its gate on")
+    return fit_regime_gate(model, *train, regime) | calibrate(model, *heldout, regime)

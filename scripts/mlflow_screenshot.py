@@ -219,21 +219,35 @@ def _click(page, target, timeout_s: float = TIMEOUT_MS / 1000) -> None:
                 raise UIError(f"could not click {target} within {timeout_s:.0f} s ({e})", page) from None
 
 
-def _show_runs(page, timeout_s: float = 2 * TIMEOUT_MS / 1000) -> None:
-    """The workflow toggle → *Model training*, until the runs table says how many runs match. On a loaded machine a
-    click can land before the page has wired the toggle and be lost (CI, 2026-11-26: no table after 60 s, a rerun
-    passed), so the toggle is clicked again each 20 s the count does not show, up to ``timeout_s``."""
+def _show_runs(page, experiment: str, timeout_s: float = 2 * TIMEOUT_MS / 1000) -> None:
+    """From the experiments list to ``experiment``'s runs table: click the experiment while the page is not on it,
+    the workflow toggle → *Model training* once it is, until the table says how many runs match. On a loaded machine
+    a click can land before the page has wired its target and be lost: CI on 2026-11-26 lost the toggle's click, CI
+    on 7e41536 the experiment's (the page stayed on the list while the toggle was clicked again and again). So each
+    20 s the count does not show, the page's address decides the next click again, up to ``timeout_s``."""
     count = page.get_by_text(re.compile(r"\d+ matching runs?")).first
     deadline = time.monotonic() + timeout_s
     while True:
-        _click(page, page.get_by_text("Model training", exact=True))
+        if re.search(r"#/experiments/\d+", page.url):
+            _click(page, page.get_by_text("Model training", exact=True))
+        else:
+            _click(page, page.get_by_role("link", name=experiment, exact=True))
+            try:
+                page.wait_for_url(re.compile(r"#/experiments/\d+"), timeout=10_000)
+            except Exception:  # playwright's TimeoutError: the click was lost; the next round clicks it again
+                pass
+            _click_if_shown(page.get_by_role("button", name="Got it"), 5_000)
+            if re.search(r"#/experiments/\d+", page.url):
+                _click(page, page.get_by_text("Model training", exact=True))
         try:
             count.wait_for(state="visible", timeout=20_000)
             return
         except Exception as e:  # playwright's TimeoutError
             if time.monotonic() > deadline:
                 raise UIError(
-                    f"no runs table ('N matching runs') within {timeout_s:.0f} s of clicks ({e})", page
+                    f"no runs table ('N matching runs') for experiment {experiment!r} within {timeout_s:.0f} s of "
+                    f"clicks ({e})",
+                    page,
                 ) from None
 
 
@@ -358,11 +372,9 @@ def compare_models(
     docstring), screenshot the page to ``out`` (when given) and return what it showed."""
     with _page(browser, size) as page:
         # 1. the experiments list → the experiment (its GenAI overview, with a "Detect Issues" hint on top)
-        page.goto(f"{url}/#/experiments")
-        _click(page, page.get_by_role("link", name=experiment, exact=True))
-        _click_if_shown(page.get_by_role("button", name="Got it"), 5_000)
         # 2. the workflow toggle → Model training: the runs table
-        _show_runs(page)
+        page.goto(f"{url}/#/experiments")
+        _show_runs(page, experiment)
         # 3. the assistant panel
         _close_assistant(page)
         # 4. the newest grid run (runs are sorted newest first): its expander (the one button of its Run Name cell)

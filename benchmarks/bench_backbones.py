@@ -140,6 +140,16 @@ def main(argv: list[str] | None = None) -> int:
             if name in PRETRAINED and args.pretrained_dir is None:
                 what += ", tiny random checkpoint"
             results[name] = {"images_per_s": rate, "dim": b.dim, "what": what}
+            if b.cpu_chunk is not None:  # against one forward call per batch, alternated (the machine's speed drifts)
+                chunk, rates = b.cpu_chunk, {b.cpu_chunk: [rate], None: []}
+                for _ in range(args.repeats):
+                    for c in (None, chunk):
+                        b.cpu_chunk = c
+                        rates[c].append(_best_rate(lambda b=b: b.extract(images, args.batch_size), args.n, 1))
+                rate, whole = max(rates[chunk]), max(rates[None])
+                what += f", calls of {chunk} images: {rate / whole:.2f}× the rate of whole batches"
+                results[name] = {"images_per_s": rate, "dim": b.dim, "what": what}
+                results[f"{name}-whole"] = {"images_per_s": whole, "dim": b.dim, "what": "the same, whole batches"}
 
     print(f"{'backbone':<10} {'dim':>5} {'images/s':>10}  measured")
     for name, r in results.items():

@@ -103,6 +103,18 @@ def test_shapes_dtypes_and_determinism(name: str, textures: np.ndarray) -> None:
     assert b.trainable == (name == "cnn")
 
 
+@pytest.mark.parametrize("name", ["cues", "tiny"])
+def test_calls_in_chunks_give_the_features_of_whole_batches_to_the_bit(name: str, renders: dict) -> None:
+    """``cpu_chunk`` is a matter of speed only: the cached features do not depend on it (nor on the batch size)."""
+    images = np.concatenate(list(renders.values()))  # 20 rendered images: chunks of 16 leave a tail of 4
+    b = _quiet(name)
+    assert b.cpu_chunk == 16  # the setting the features stage runs
+    chunked = _extract(b, images)
+    for chunk in (3, None):  # chunks with a tail of 2; the whole batch
+        b.cpu_chunk = chunk
+        np.testing.assert_array_equal(_extract(b, images), chunked, err_msg=f"{name}, calls of {chunk}")
+
+
 @pytest.mark.parametrize("name", EMBEDDED)
 def test_bad_input_is_a_clear_error(name: str, textures: np.ndarray) -> None:
     b = _quiet(name)

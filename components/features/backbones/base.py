@@ -48,6 +48,10 @@ class Backbone(nn.Module):
     dim: int = 0
     trainable: bool = False
     input_size: tuple[int, int] = (128, 128)
+    #: images per forward call within :meth:`extract`'s batches on a CPU (None: the whole batch). A forward that streams
+    #: many full-image temporaries (the cues: ~60 of them) runs faster when a call's fit the CPU's caches; the features
+    #: are the same to the bit, as each image's are computed alone (BENCHMARKS.md "The cues in cache-sized chunks")
+    cpu_chunk: ClassVar[int | None] = None
 
     def __init__(self) -> None:
         super().__init__()
@@ -118,10 +122,17 @@ class Backbone(nn.Module):
             with torch.inference_mode():
                 for s in starts:
                     x = self.preprocess(images[s : s + batch_size]).to(device)
-                    out[s : s + x.shape[0]] = self(x).float().cpu().numpy()
+                    out[s : s + x.shape[0]] = self._chunked(x).float().cpu().numpy()
         finally:
             self.train(was_training)
         return out
+
+    def _chunked(self, x: torch.Tensor) -> torch.Tensor:
+        """``self(x)``, in calls of :attr:`cpu_chunk` images on a CPU."""
+        chunk = self.cpu_chunk
+        if chunk is None or x.device.type != "cpu" or x.shape[0] <= chunk:
+            return self(x)
+        return torch.cat([self(x[i : i + chunk]) for i in range(0, x.shape[0], chunk)])
 
     # -- symmetry ------------------------------------------------------------------------------------
     def mirror_index(self) -> tuple[int, ...] | None:

@@ -32,6 +32,19 @@ def test_density_is_the_weighted_gaussian_mixture_and_integrates_to_one():
     assert np.exp(dom.log_prob(grid)).sum() * (g[1] - g[0]) ** 2 == pytest.approx(1.0, abs=1e-6)
 
 
+def test_the_block_size_of_log_prob_is_a_matter_of_speed(monkeypatch):
+    """log p̃ in blocks of 1, 3 or all points (``_CENTRES_PER_CALL``) is the same density: rounding at most."""
+    import components.domains.kernel as kernel
+
+    draws = _draws(2, n=40, m=16, d=6)  # 640 centres
+    dom = KernelDomain(draws, None, np.full(6, 0.8))
+    theta = rng(3, "test", "kernel", "blocks").uniform(-1.0, 11.0, size=(64, 6))
+    whole = dom.log_prob(theta)
+    for pairs in (640, 3 * 640):  # blocks of one θ, of three (the last one shorter)
+        monkeypatch.setattr(kernel, "_CENTRES_PER_CALL", pairs)
+        np.testing.assert_allclose(dom.log_prob(theta), whole, rtol=1e-13, atol=0)
+
+
 def test_draws_follow_the_density():
     dom = KernelDomain(_draws(2), None, np.array([0.5, 2.0]))
     x = dom.sample(20000, seed=3)

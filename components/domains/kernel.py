@@ -39,7 +39,12 @@ from components.domains.absolute import _as_theta, normalized_weights
 
 __all__ = ["KernelDomain", "scott_bandwidth", "sources_bandwidth"]
 
-_CENTRES_PER_CALL = 1 << 20  # (θ, centre) pairs per block of log_prob
+#: (θ, centre) pairs per block of log_prob: 1 MiB of float64, so that the block's passes (distances, exponentials, sums)
+#: stay in the CPU's caches: a Task III experiment in 0.64× the time of 8× larger blocks, the task3 stage's whole sweep
+#: in 0.87× (BENCHMARKS.md "Features and kernel densities in cache-sized pieces"). Each θ's row is computed alone, so
+#: the block size changes at most the rounding of the distances' matrix product (none on the default profile's sweep
+#: with blocks of 2 to 64 rows)
+_CENTRES_PER_CALL = 1 << 17
 
 
 def _check_draws(draws: object, name: str = "draws") -> np.ndarray:

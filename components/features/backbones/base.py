@@ -49,8 +49,10 @@ class Backbone(nn.Module):
     trainable: bool = False
     input_size: tuple[int, int] = (128, 128)
     #: images per forward call within :meth:`extract`'s batches on a CPU (None: the whole batch). A forward that streams
-    #: many full-image temporaries (the cues: ~60 of them) runs faster when a call's fit the CPU's caches; the features
-    #: are the same to the bit, as each image's are computed alone (BENCHMARKS.md "The cues in cache-sized chunks")
+    #: many full-image temporaries (the cues: ~60 of them) runs faster when a call's temporaries fit the CPU's caches.
+    #: Set it only where each image's features are computed alone, so that they are the same to the bit in any chunk
+    #: (the cues and tiny; not the cnn, whose convolutions round by batch size; BENCHMARKS.md "Features and kernel
+    #: densities in cache-sized pieces")
     cpu_chunk: ClassVar[int | None] = None
 
     def __init__(self) -> None:

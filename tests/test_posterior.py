@@ -16,11 +16,12 @@ import torch
 from torch import nn
 
 from components.core import seeding, weather
+from components.posterior import model as model_module
 from components.posterior.bijection import Z_MAX, IntervalBox, ScaledLogit, as_interval_box
 from components.posterior.checkpoint import load_checkpoint
 from components.posterior.loss import balance_penalty, npe_loss
 from components.posterior.mixture import EqualMixture
-from components.posterior.model import NPE, FlowConfig
+from components.posterior.model import NPE, FlowConfig, finite_rows
 from components.posterior.train import History, TrainingConfig, train
 
 torch.set_num_threads(1)
@@ -347,6 +348,33 @@ def _data(n: int, seed: int = 0, features: int = 5) -> tuple[np.ndarray, np.ndar
     u = (theta - BOX.low) / BOX.width
     x = u[:, :features] + 0.1 * rng.normal(size=(n, features))
     return x.astype(np.float32), theta
+
+
+def test_finite_rows_in_pieces_name_the_rows_that_whole_arrays_do(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(model_module, "_ROWS_PER_CHECK", 3)
+    rng = seeding.rng(0, "test", "finite")
+    for dtype in (torch.float32, torch.float64, torch.float16):
+        x = torch.as_tensor(rng.normal(size=(11, 2, 3))).to(dtype)
+        x[4, 1, 2], x[9, 0, 0], x[10, 1, 1] = float("nan"), float("inf"), -float("inf")
+        expected = torch.isfinite(x.reshape(11, -1)).all(dim=1)
+        assert torch.equal(finite_rows(x), expected) and expected.sum() == 8
+    assert finite_rows(torch.zeros(0, 4)).shape == (0,)
+
+
+def test_standardization_in_pieces_gives_the_whole_arrays_moments_to_the_bit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The moments are computed a few elements at a time (the cnn's 50 000 × 3 × 64 × 64 inputs): the same bits as
+    float64 moments of the whole array, constant elements (std 0) included."""
+    rng = seeding.rng(1, "test", "moments")
+    x = torch.as_tensor(rng.gamma(2.0, 3.0, size=(500, 3, 7, 5)), dtype=torch.float32)
+    x[:, 1, 2, 3] = 4.25
+    whole = x.to(torch.float64)
+    mean, std = whole.mean(dim=0), whole.std(dim=0, unbiased=False)
+    std = torch.where(std > 1e-8 * (1.0 + mean.abs()), std, torch.ones_like(std))
+    monkeypatch.setattr(model_module, "_ELEMENTS_PER_MOMENT", 16)  # 105 elements: 7 pieces, the last one short
+    m = NPE(nn.Flatten(), 105, BOX, FlowConfig(transforms=1, hidden_features=(8,)), input_shape=(3, 7, 5), seed=0)
+    m.fit_standardization(x)
+    assert torch.equal(m.feature_mean, mean.to(torch.float32)) and torch.equal(m.feature_std, std.to(torch.float32))
+    assert float(m.feature_std[1, 2, 3]) == 1.0
 
 
 def test_training_input_validation_names_the_problem() -> None:

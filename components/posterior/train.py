@@ -38,7 +38,7 @@ from tqdm.auto import tqdm
 from components.core import seeding
 from components.posterior.checkpoint import load_checkpoint, save_checkpoint
 from components.posterior.loss import npe_loss, npe_loss_terms
-from components.posterior.model import NPE
+from components.posterior.model import NPE, finite_rows
 
 __all__ = ["TrainingConfig", "EpochRecord", "History", "train", "check_split"]
 
@@ -251,7 +251,7 @@ def check_split(name: str, data: tuple[object, object], model: NPE) -> tuple[Ten
         )
     if not x.is_floating_point():
         x = x.to(torch.float32)
-    finite = torch.isfinite(x.reshape(x.shape[0], -1)).all(dim=1)
+    finite = finite_rows(x)
     if not bool(finite.all()):
         row = int((~finite).nonzero()[0])
         raise ValueError(f"{name} x contains NaN or infinite values ({int((~finite).sum())} rows, first at row {row})")
@@ -268,7 +268,7 @@ def _fingerprint(x: Tensor, theta: Tensor) -> str:
     h = hashlib.sha256()
     h.update(str(tuple(x.shape)).encode())
     h.update(theta.numpy().tobytes())
-    h.update(np.float64(x.double().sum()).tobytes())
+    h.update(np.float64(torch.sum(x, dtype=torch.float64)).tobytes())  # = x.double().sum(), without the copy
     return h.hexdigest()
 
 

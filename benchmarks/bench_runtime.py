@@ -4,7 +4,9 @@ For each image, features → ``n`` posterior draws θ with their log-densities l
 ``OnnxPosterior.sample_and_log_prob`` (onnxruntime, CPU) vs ``NPE.sample_and_log_prob`` (torch, no autograd).
 Per-image latency (batch of one image, median over images) and throughput (batches of ``--batch`` images),
 with the same thread count on both sides; the two engines alternate call by call, so that a drifting machine
-load affects both alike. The model is exported to a temporary folder first (not timed).
+load affects both alike. The model is exported to a temporary folder first (not timed). For an ensemble a third engine, "every member's
+density", draws as the runtime did before card format 2: each draw's log q from all K members' density graphs, instead
+of the drawing member's from its inverse pass and the K − 1 others' (:func:`draw_with_every_density`).
 
     .venv/bin/python benchmarks/bench_runtime.py --model models/cues-10000/model.pt --threads 1
 
@@ -32,7 +34,7 @@ sys.path.insert(0, str(ROOT))
 
 from machine import machine_info  # benchmarks/machine.py (the script's folder is on sys.path)  # noqa: E402
 
-from components.core import seeding  # noqa: E402
+from components.core import seeding, weather  # noqa: E402
 from components.export.onnx import EXPORTERS, export_posterior  # noqa: E402
 from components.export.runtime import OnnxPosterior  # noqa: E402
 from components.posterior.store import load_npe  # noqa: E402
@@ -49,6 +51,24 @@ def _inputs(path: Path | None, model, count: int, seed: int) -> tuple[np.ndarray
     rng = seeding.rng(seed, "benchmark", "runtime")
     mean, std = model.feature_mean.numpy(), model.feature_std.numpy()
     return (rng.standard_normal((count, *model.input_shape)) * std + mean).astype(np.float32), "random"
+
+
+def draw_with_every_density(runtime: OnnxPosterior, x: np.ndarray, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``runtime.sample_and_log_prob(x, n, seed)`` computed as before card format 2: the same draws, each one's
+    mixture density from every member's density graph (the drawing member's inverse-pass density unused)."""
+    context = runtime.context(x)
+    eps, which = runtime._noise(x.shape[0], n, seed)
+    b, _, d = eps.shape
+    c_rows, e_rows, w_rows = np.repeat(context, n, axis=0), eps.reshape(b * n, 1, d), which.reshape(b * n)
+    z64 = np.empty((b * n, d), dtype=np.float64)
+    for k in range(runtime.ensemble):
+        rows = np.flatnonzero(w_rows == k)
+        if rows.size:
+            zk, _ = runtime._invert(k, np.ascontiguousarray(c_rows[rows]), np.ascontiguousarray(e_rows[rows]))
+            z64[rows] = zk[:, 0]
+    members = np.stack([runtime._log_qz_member(k, c_rows, z64) for k in range(runtime.ensemble)], axis=1)
+    log_q = runtime._log_qz_mixture(members) - weather.log_abs_det_jacobian(z64, runtime.box)
+    return weather.to_physical(z64, runtime.box).reshape(b, n, d), log_q.reshape(b, n)
 
 
 def _latency(calls: dict[str, Callable[[np.ndarray], object]], x: np.ndarray) -> dict[str, float]:
@@ -154,6 +174,15 @@ def main(argv: list[str] | None = None) -> dict:
                 return model.sample_and_log_prob(torch.from_numpy(batch), args.samples, rng=args.seed)
 
         calls = {"onnxruntime": run_onnx, "torch eager": run_torch}
+        if runtime.ensemble > 1:
+            calls["every member's density"] = lambda batch: draw_with_every_density(
+                runtime, batch, args.samples, args.seed
+            )
+            same, every = run_onnx(x[:4]), calls["every member's density"](x[:4])
+            if not np.array_equal(same[0], every[0]) or np.abs(same[1] - every[1]).max() > 1e-2:
+                raise SystemExit(
+                    "the two ways of drawing disagree: not the same draws, or densities apart by > 0.01 nats"
+                )
         latency = _latency(calls, x[: args.images])
         throughput = _throughput(calls, x[: args.batch * args.batches], args.batch, args.repeats)
         rows = {name: {"latency_ms": 1e3 * latency[name], "images_per_s": throughput[name]} for name in calls}
@@ -162,10 +191,17 @@ def main(argv: list[str] | None = None) -> dict:
     speedup_latency = torch_row["latency_ms"] / onnx_row["latency_ms"]
     speedup_throughput = onnx_row["images_per_s"] / torch_row["images_per_s"]
     print(f"model {args.model} ({source} features), {args.samples} draws + log q per image, {args.threads} thread(s)")
-    print(f"{'engine':<14}{'latency ms/image':>18}{'images/s (batch ' + str(args.batch) + ')':>22}")
+    print(f"{'engine':<24}{'latency ms/image':>18}{'images/s (batch ' + str(args.batch) + ')':>22}")
     for name, row in rows.items():
-        print(f"{name:<14}{row['latency_ms']:>18.2f}{row['images_per_s']:>22.1f}")
+        print(f"{name:<24}{row['latency_ms']:>18.2f}{row['images_per_s']:>22.1f}")
     print(f"onnxruntime speed-up: latency {speedup_latency:.2f}×, throughput {speedup_throughput:.2f}×")
+    if "every member's density" in rows:
+        every = rows["every member's density"]
+        print(
+            f"the drawing member's density from its inverse pass: {onnx_row['images_per_s'] / every['images_per_s']:.2f}× "
+            f"the throughput of every member's density graph ({every['images_per_s']:.1f} images/s), latency "
+            f"{onnx_row['latency_ms'] / every['latency_ms']:.2f}× the time"
+        )
     flops = flops_per_draw(model)
     peak = dense_peak_flops(args.threads)
     draws = onnx_row["images_per_s"] * args.samples

@@ -22,7 +22,7 @@ import torch
 from components.core import seeding, weather
 from components.domains.absolute import Domain, Posterior
 from components.export.onnx import OPSET, export_posterior
-from components.export.runtime import OnnxPosterior
+from components.export.runtime import OnnxPosterior, _even_blocks
 from components.features.backbones import get_backbone
 from components.posterior.mixture import EqualMixture, draw_flow
 from components.posterior.model import NPE, FlowConfig
@@ -240,7 +240,7 @@ def test_card_describes_the_model(exported):
     assert card["bijection"]["low"] == BOX.low.tolist() and card["bijection"]["high"] == BOX.high.tolist()
     assert card["input"]["shape"] == ["batch", 3, 64, 64] and card["input"]["dtype"] == "float32"
     assert card["ensemble"] == 1 and card["opset"] >= 18
-    assert sorted(card["files"]) == ["context", "density", "log_prob", "sample_0"]
+    assert sorted(card["files"]) == ["context", "density", "log_prob_0", "sample_0"]
     for entry in card["files"].values():
         proto = onnx.load(str(folder / entry["name"]))
         onnx.checker.check_model(proto)
@@ -249,13 +249,15 @@ def test_card_describes_the_model(exported):
         "card.json",
         "context.onnx",
         "density.onnx",
-        "log_prob.onnx",
+        "log_prob_0.onnx",
         "sample_0.onnx",
     ]
     ens = json.loads((exported["ensemble"][2] / "card.json").read_text())  # the flows' context: the network's output
     assert ens["features"] == 10 and ens["flow"]["context_layers"] == [16, 10]
     assert ens["graphs"]["context"]["outputs"]["context"] == ["batch", 10] and ens["input"]["shape"] == ["batch", 12]
     assert exported["ensemble"][1].features == 10
+    # one density graph per member: a draw's own member's density comes from its inverse pass
+    assert sorted(ens["files"]) == ["context", "density", "log_prob_0", "log_prob_1", "sample_0", "sample_1"]
 
 
 def test_clear_errors(exported, tmp_path):
@@ -265,13 +267,13 @@ def test_clear_errors(exported, tmp_path):
     # a corrupted graph
     broken = tmp_path / "broken"
     shutil.copytree(folder, broken)
-    data = bytearray((broken / "log_prob.onnx").read_bytes())
+    data = bytearray((broken / "log_prob_0.onnx").read_bytes())
     data[len(data) // 2] ^= 0xFF
-    (broken / "log_prob.onnx").write_bytes(bytes(data))
+    (broken / "log_prob_0.onnx").write_bytes(bytes(data))
     with pytest.raises(ValueError, match="sha256"):
         OnnxPosterior.load(broken)
-    (broken / "log_prob.onnx").unlink()
-    with pytest.raises(FileNotFoundError, match="log_prob"):
+    (broken / "log_prob_0.onnx").unlink()
+    with pytest.raises(FileNotFoundError, match="log_prob_0"):
         OnnxPosterior.load(broken)
     # a card of another format version
     future = tmp_path / "future"
@@ -368,3 +370,18 @@ def test_dynamo_export_of_a_float64_model(tmp_path):
     with pytest.raises(ValueError, match="exporter"):
         export_posterior(model, tmp_path / "bad", card={}, exporter="jit")
     assert not (tmp_path / "bad").exists()
+
+
+def test_each_inputs_draws_of_a_member_are_an_even_block():
+    """onnxruntime computes rows in pairs: each input's rows go to the graphs as an even block, its last row repeated
+    where it has an odd number, so that an input's draws keep their positions' parities however inputs are grouped."""
+    rng = seeding.rng(3, "test", "blocks")
+    n = 7
+    rows = np.flatnonzero(rng.integers(2, size=40 * n) == 1)
+    padded, real = _even_blocks(rows, n)
+    np.testing.assert_array_equal(padded[real], rows)
+    assert np.all(np.bincount(padded // n) % 2 == 0) and np.all(np.diff(padded) >= 0)
+    assert np.all(padded[~real] == padded[np.flatnonzero(~real) - 1])  # a repeat follows its original
+    assert (~real).sum() == np.sum(np.bincount(rows // n) % 2)
+    empty, mask = _even_blocks(rows[:0], n)
+    assert empty.size == 0 and mask.size == 0

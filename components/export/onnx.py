@@ -6,9 +6,11 @@ The exported folder holds three kinds of graph, all float32 with a dynamic batch
     ``x (B, *input_shape) → context (B, features)``: the standardization ``(x − mean)/std``, the embedding
     (the identity for frozen features; the CNN for a trainable backbone, whose input is ``backbone.preprocess``'s
     tensor) and the context network (``FlowConfig.context_layers``); ``features`` is the flows' context size.
-``log_prob.onnx``
-    ``(context (B, features), z (B, d)) → log_qz (B, K)``: each ensemble member's z-space log-density
-    ``log qₖ(z | c)`` (the fixed division by ``Z_SCALE`` included), for the K members of the equal-weight mixture.
+``log_prob_<k>.onnx`` (k = 0 … K−1)
+    ``(context (B, features), z (B, d)) → log_qz (B,)``: member k's z-space log-density ``log qₖ(z | c)`` (the fixed
+    division by ``Z_SCALE`` included), one graph per member of the equal-weight mixture: a draw of member k has its
+    ``log qₖ`` from the inverse pass already, so the runtime asks only the other members (card format 2; format 1 had
+    one graph of all K).
 ``sample_<k>.onnx`` (k = 0 … K−1)
     ``(context (B, features), eps (B, n, d)) → (z (B, n, d), log_qz (B, n))``: member k's inverse pass
     ``z = fₖ⁻¹(ε | c)`` for n draws per input from standard-normal base noise ε, and
@@ -57,7 +59,7 @@ from components.posterior.model import NPE, Z_SCALE
 __all__ = ["export_posterior", "CARD_FORMAT", "CARD_KIND", "OPSET", "EXPORTERS"]
 
 #: Version of the exported folder's layout; :mod:`components.export.runtime` refuses any other.
-CARD_FORMAT: int = 1
+CARD_FORMAT: int = 2
 #: The ``kind`` field of the card.
 CARD_KIND: str = "pidc-onnx-posterior"
 #: ONNX opset of the exported graphs.
@@ -82,14 +84,14 @@ class _ContextGraph(nn.Module):
 
 
 class _LogProbGraph(nn.Module):
-    """``(c (B, features), z (B, d)) → log qₖ(z | c) (B, K)`` for every member k."""
+    """``(c (B, features), z (B, d)) → log qₖ(z | c) (B,)``: one member's z-space log-density."""
 
-    def __init__(self, model: NPE) -> None:
+    def __init__(self, flow: nn.Module) -> None:
         super().__init__()
-        self.flows = model.flows
+        self.flow = flow
 
     def forward(self, context: Tensor, z: Tensor) -> Tensor:
-        return torch.stack([flow(context).log_prob(z) for flow in self.flows], dim=-1)
+        return self.flow(context).log_prob(z)
 
 
 class _DensityGraph(nn.Module):
@@ -343,7 +345,7 @@ def _write_graphs(model: NPE, tmp: Path, exporter: str) -> dict[str, str]:
     if model.config.standardize:
         x = x * model.feature_std.float() + model.feature_mean.float()
     eps = torch.randn((b, 2, model.dim), generator=gen)  # (batch, draws, d)
-    files: dict[str, str] = {"context": "context.onnx", "log_prob": "log_prob.onnx"}
+    files: dict[str, str] = {"context": "context.onnx"}
     with torch.no_grad():
         ctx_module = _ContextGraph(model)
         c = ctx_module(x)
@@ -357,20 +359,20 @@ def _write_graphs(model: NPE, tmp: Path, exporter: str) -> dict[str, str]:
             {"x": ("batch",), "context": ("batch",)},
         )
         z = torch.randn((b, model.dim), generator=gen) * 3.0
-        lp_module = _LogProbGraph(model)
-        _export_graph(
-            lp_module,
-            (c, z),
-            tmp / files["log_prob"],
-            ["context", "z"],
-            ["log_qz"],
-            exporter,
-            {"context": ("batch",), "z": ("batch",), "log_qz": ("batch",)},
-        )
-        checks: list[tuple[str, dict[str, np.ndarray], list[Tensor]]] = [
-            (files["context"], {"x": x.numpy()}, [c]),
-            (files["log_prob"], {"context": c.numpy(), "z": z.numpy()}, [lp_module(c, z)]),
-        ]
+        checks: list[tuple[str, dict[str, np.ndarray], list[Tensor]]] = [(files["context"], {"x": x.numpy()}, [c])]
+        for k, flow in enumerate(model.flows):
+            files[f"log_prob_{k}"] = f"log_prob_{k}.onnx"
+            lp_module = _LogProbGraph(flow)
+            _export_graph(
+                lp_module,
+                (c, z),
+                tmp / files[f"log_prob_{k}"],
+                ["context", "z"],
+                ["log_qz"],
+                exporter,
+                {"context": ("batch",), "z": ("batch",), "log_qz": ("batch",)},
+            )
+            checks.append((files[f"log_prob_{k}"], {"context": c.numpy(), "z": z.numpy()}, [lp_module(c, z)]))
         files["density"] = "density.onnx"
         theta = model.box.low + torch.rand((b, model.dim), generator=gen, dtype=torch.float64).numpy() * model.box.width
         theta_t = torch.from_numpy(theta).float()
@@ -461,9 +463,9 @@ def _card(model: NPE, user_card: dict[str, Any], files: dict[str, str], tmp: Pat
                 "inputs": {"x": ["batch", *model.input_shape]},
                 "outputs": {"context": ["batch", model.context_features]},
             },
-            "log_prob": {
+            "log_prob": {  # one graph per member: log_prob_<k>
                 "inputs": {"context": ["batch", model.context_features], "z": ["batch", model.dim]},
-                "outputs": {"log_qz": ["batch", len(model.flows)]},
+                "outputs": {"log_qz": ["batch"]},
             },
             "density": {
                 "inputs": {"x": ["batch", *model.input_shape], "theta": ["batch", model.dim]},

@@ -35,7 +35,7 @@ from components.core.files import sha256_file
 __all__ = ["OnnxPosterior", "CARD_FORMAT", "CARD_KIND"]
 
 #: The card format this runtime reads (:data:`components.export.onnx.CARD_FORMAT`; repeated here to keep torch out).
-CARD_FORMAT: int = 1
+CARD_FORMAT: int = 2
 #: The card's ``kind``.
 CARD_KIND: str = "pidc-onnx-posterior"
 #: Rows per onnxruntime call when sampling or evaluating many points (bounds the graphs' working memory).
@@ -70,6 +70,26 @@ def _read_card(folder: Path) -> dict[str, Any]:
     return card
 
 
+def _even_blocks(rows: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The rows ``(m,)`` (ascending; row ``b·n + j`` is input b's draw j) with each input's last row repeated where it
+    has an odd number of them, and the mask ``(m',)`` of the rows that are not such repeats.
+
+    onnxruntime's CPU kernels compute rows in pairs, and a row's last digit depends on whether it sits at an even or an
+    odd position of the call (measured on the graphs of an ensemble: every mismatch between two chunkings was a row
+    whose position changed parity). With each input's rows an even block, an input's draws sit at the same parities
+    however the inputs are grouped into calls: its draws and densities depend on the input only (``evaluate.images``
+    and the evaluation's chunking are a matter of speed).
+    """
+    if rows.size == 0:
+        return rows, np.ones(0, dtype=bool)
+    counts = np.bincount(rows // n)
+    last = np.cumsum(counts)[counts % 2 == 1] - 1  # the position of each odd block's last row
+    padded = np.insert(rows, last + 1, rows[last])
+    real = np.ones(padded.size, dtype=bool)
+    real[last + 1 + np.arange(last.size)] = False
+    return padded, real
+
+
 class OnnxPosterior:
     """q(θ | x) from an exported folder, on onnxruntime (CPU). Build it with :meth:`load`.
 
@@ -97,7 +117,7 @@ class OnnxPosterior:
         self.features = int(card["features"])
         self.input_shape: tuple[int, ...] = tuple(int(s) for s in card["input"]["shape"][1:])
         self._context = sessions["context"]
-        self._log_prob = sessions["log_prob"]
+        self._log_prob = [sessions[f"log_prob_{k}"] for k in range(self.ensemble)]
         self._sample = [sessions[f"sample_{k}"] for k in range(self.ensemble)]
 
     # --- loading -----------------------------------------------------------------------------------------
@@ -128,7 +148,7 @@ class OnnxPosterior:
         ensemble = card["ensemble"]
         if isinstance(ensemble, bool) or not isinstance(ensemble, int) or ensemble < 1:
             raise ValueError(f"{folder / 'card.json'}: ensemble must be an integer >= 1, got {ensemble!r}")
-        roles = ["context", "log_prob", *(f"sample_{k}" for k in range(ensemble))]
+        roles = ["context", *(f"{g}_{k}" for g in ("log_prob", "sample") for k in range(ensemble))]
         options = onnxruntime.SessionOptions()
         options.intra_op_num_threads = intra_op_num_threads
         options.inter_op_num_threads = 1
@@ -209,18 +229,17 @@ class OnnxPosterior:
         out = [self._context.run(None, {"x": x32[i : i + _CHUNK_ROWS]})[0] for i in range(0, x32.shape[0], _CHUNK_ROWS)]
         return np.concatenate(out, axis=0)
 
-    def _log_qz_members(self, context: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """``(N, features), (N, d) → (N, K)`` float64: each member's log qₖ(z | c)."""
+    def _log_qz_member(self, k: int, context: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """``(N, features), (N, d) → (N,)`` float64: member k's log qₖ(z | c)."""
         z32 = np.ascontiguousarray(z, dtype=np.float32)
         out = [
-            self._log_prob.run(None, {"context": context[i : i + _CHUNK_ROWS], "z": z32[i : i + _CHUNK_ROWS]})[0]
+            self._log_prob[k].run(None, {"context": context[i : i + _CHUNK_ROWS], "z": z32[i : i + _CHUNK_ROWS]})[0]
             for i in range(0, z32.shape[0], _CHUNK_ROWS)
         ]
         return np.concatenate(out, axis=0).astype(np.float64)
 
-    def _log_qz_mixture(self, context: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """log q(z | c) of the equal-weight mixture, ``(N,)`` float64."""
-        members = self._log_qz_members(context, z)
+    def _log_qz_mixture(self, members: np.ndarray) -> np.ndarray:
+        """log q(z | c) of the equal-weight mixture from its members' ``(N, K)`` log qₖ, ``(N,)`` float64."""
         if self.ensemble == 1:
             return members[:, 0]
         # numpy's log-sum-exp (−inf where every member is −inf); no scipy here, to keep the runtime's dependencies few
@@ -261,7 +280,8 @@ class OnnxPosterior:
         m = 1 if t.ndim == 2 else t.shape[1]
         flat = t.reshape(b * m, self.dim)
         z = weather.to_unbounded(flat, self.box)
-        log_qz = self._log_qz_mixture(np.repeat(context, m, axis=0), z)
+        c_rows = np.repeat(context, m, axis=0)
+        log_qz = self._log_qz_mixture(np.stack([self._log_qz_member(k, c_rows, z) for k in range(self.ensemble)], 1))
         log_q = log_qz - weather.log_abs_det_jacobian(z, self.box)
         log_q = np.where(self.box.contains(flat), log_q, -np.inf)
         return log_q.reshape(t.shape[:-1])
@@ -322,17 +342,24 @@ class OnnxPosterior:
             z, log_qz = self._invert(0, context, eps)
             z64 = z.astype(np.float64).reshape(b * n, d)
             log_qz = log_qz.reshape(b * n)
-        else:  # each draw goes through its member: rows of one draw each, then the mixture's density
+        else:  # each draw goes through its member (rows of one draw each), then the other members' densities
             c_rows = np.repeat(context, n, axis=0)  # row b·n + j ↔ (input b, draw j)
             e_rows = eps.reshape(b * n, 1, d)
             w_rows = which.reshape(b * n)
             z64 = np.empty((b * n, d), dtype=np.float64)
+            members = np.empty((b * n, self.ensemble), dtype=np.float64)
             for k in range(self.ensemble):
-                rows = np.flatnonzero(w_rows == k)
+                rows, real = _even_blocks(np.flatnonzero(w_rows == k), n)
                 if rows.size:
-                    zk, _ = self._invert(k, np.ascontiguousarray(c_rows[rows]), np.ascontiguousarray(e_rows[rows]))
-                    z64[rows] = zk[:, 0]
-            log_qz = self._log_qz_mixture(c_rows, z64)
+                    c_k = np.ascontiguousarray(c_rows[rows])
+                    zk, log_qk = self._invert(k, c_k, np.ascontiguousarray(e_rows[rows]))
+                    z_k = zk[:, 0]
+                    z64[rows[real]] = z_k[real]
+                    members[rows[real], k] = log_qk[real, 0]  # the drawing member's density from its inverse pass
+                    for j in range(self.ensemble):
+                        if j != k:
+                            members[rows[real], j] = self._log_qz_member(j, c_k, z_k)[real]
+            log_qz = self._log_qz_mixture(members)
         theta = weather.to_physical(z64, self.box)
         log_q = log_qz - weather.log_abs_det_jacobian(z64, self.box)
         return theta.reshape(b, n, d), log_q.reshape(b, n)

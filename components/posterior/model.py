@@ -47,8 +47,9 @@ Z_SCALE: float = Z_MAX / 4.0
 
 #: Rows per ``isfinite`` call and elements per float64 moment in :func:`finite_rows` and
 #: :meth:`NPE.fit_standardization`: the cnn's 50 000 training inputs of 3 × 64 × 64 are 2.5 GB in float32, and whole-array
-#: temporaries (a bool copy, a float64 copy and its squares, 5 GB each) took 35 s before its first epoch; in pieces the
-#: same numbers come in 11 s (BENCHMARKS.md "The cnn's inputs in pieces").
+#: temporaries (a 0.6 GB bool copy, a 5 GB float64 copy and its squares) took ~36 s before its first epoch; in pieces the
+#: same numbers come in ~12 s (``benchmarks/bench_inputs.py``; BENCHMARKS.md "The cnn's inputs in pieces, one density
+#: graph per ensemble member").
 _ROWS_PER_CHECK: int = 4096
 _ELEMENTS_PER_MOMENT: int = 256
 

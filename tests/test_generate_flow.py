@@ -88,7 +88,7 @@ def test_dvc_repro_pipeline_in_a_temp_git_repo(micro_project, tmp_path, prefect_
         assert (
             card["model_id"] == model
             and card["data_hash"]
-            and set(card["files"]) >= {"context", "log_prob", "sample_0"}
+            and set(card["files"]) >= {"context", "log_prob_0", "sample_0"}
         )
     champion = json.loads((repo / "reports/task1/champion.json").read_text())
     # the champion rule (components.evaluate.champion): lowest test NLL within the band, else below the ceiling

@@ -3,10 +3,11 @@
 For each image, features → ``n`` posterior draws θ with their log-densities log q(θ | x):
 ``OnnxPosterior.sample_and_log_prob`` (onnxruntime, CPU) vs ``NPE.sample_and_log_prob`` (torch, no autograd).
 Per-image latency (batch of one image, median over images) and throughput (batches of ``--batch`` images),
-with the same thread count on both sides; the two engines alternate call by call, so that a drifting machine
-load affects both alike. The model is exported to a temporary folder first (not timed). For an ensemble a third engine, "every member's
-density", draws as the runtime did before card format 2: each draw's log q from all K members' density graphs, instead
-of the drawing member's from its inverse pass and the K − 1 others' (:func:`draw_with_every_density`).
+with the same thread count on both sides; the engines alternate call by call, so that a drifting machine load
+affects them alike. The model is exported to a temporary folder first (not timed). For an ensemble a third engine,
+"every member's density", draws as the runtime did before card format 2: each draw's log q from all K members'
+density graphs, instead of the drawing member's from its inverse pass and the K − 1 others'
+(:func:`draw_with_every_density`).
 
     .venv/bin/python benchmarks/bench_runtime.py --model models/cues-10000/model.pt --threads 1
 

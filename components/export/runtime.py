@@ -353,12 +353,12 @@ class OnnxPosterior:
                 if rows.size:
                     c_k = np.ascontiguousarray(c_rows[rows])
                     zk, log_qk = self._invert(k, c_k, np.ascontiguousarray(e_rows[rows]))
-                    z_k = zk[:, 0]
-                    z64[rows[real]] = z_k[real]
-                    members[rows[real], k] = log_qk[real, 0]  # the drawing member's density from its inverse pass
+                    z_k, kept = zk[:, 0], rows[real]
+                    z64[kept] = z_k[real]
+                    members[kept, k] = log_qk[real, 0]  # the drawing member's density from its inverse pass
                     for j in range(self.ensemble):
                         if j != k:
-                            members[rows[real], j] = self._log_qz_member(j, c_k, z_k)[real]
+                            members[kept, j] = self._log_qz_member(j, c_k, z_k)[real]
             log_qz = self._log_qz_mixture(members)
         theta = weather.to_physical(z64, self.box)
         log_q = log_qz - weather.log_abs_det_jacobian(z64, self.box)

@@ -10,9 +10,12 @@ whether the issue's 8 nats are a matter of scale or of the images. On one machin
    (``components.posterior.settings``: its flows, input noise and temperature; compiled only on a CPU) or any
    ``bench_levers.py`` setting of the cues alone (``cues-v4-<size>[-ens<k>][-c…][-e<k>][-n<σ>][-t]…``), with
    ``--jobs`` > 1 in that many processes on the CPU at once (``--threads`` each) while the GPU trains the hybrids; and *hybrids*
-   (``hybrid-<size>[-e<epochs>][-f]``): a residual CNN on the full 128×128 image (no 2×2 reduction: rain streaks are
-   one pixel wide) whose embedding is joined to the standardized cues, trained jointly with the flow (one-cycle
-   schedule; ``-f``: the CNN sees each training image mirrored with probability 1/2);
+   (``hybrid-<size>[-e<epochs>][-f][-s]``): a residual CNN on the full 128×128 image (no 2×2 reduction: rain streaks
+   are one pixel wide) whose embedding is joined to the standardized cues, trained jointly with the flow (one-cycle
+   schedule; ``-f``: the CNN sees each training image mirrored with probability 1/2; ``-s``: half its widths, about a
+   quarter of its FLOPs); ``cnn-<size>…`` is the same CNN alone, without the cues (what one learned backbone reads).
+   With ``--image-jobs`` > 1 the image models train in that many processes at once on the one GPU (the images are
+   kept in ``--cache`` as ``.npy`` for them);
 4. scores each on the whole test split exactly like ``bench_levers.py`` (``score``): test NLL, information gain,
    calibration error with its band, per-parameter day errors and night coverage.
 
@@ -116,13 +119,18 @@ def cues_of(images: np.ndarray, device: str, batch: int = 2048) -> torch.Tensor:
     return torch.cat(out)
 
 
+WIDTHS = (32, 48, 64, 96, 128, 192)  # the CNN's channels: stem, then the five stages
+SMALL_WIDTHS = (16, 24, 32, 48, 64, 96)  # ``-s``: half of them
+
+
 class FullResolutionCNN(nn.Module):
     """Residual CNN on 128×128 sRGB images (+ a row channel) → ``(n, dim)``: a stem at full resolution (one-pixel rain
     streaks survive), five stages (64…4 px) of a stride-2 convolution and one residual block, global mean and max
     pooling."""
 
-    def __init__(self, dim: int = 128, widths: tuple[int, ...] = (32, 48, 64, 96, 128, 192)) -> None:
+    def __init__(self, dim: int = 128, widths: tuple[int, ...] = WIDTHS) -> None:
         super().__init__()
+        self.widths = tuple(widths)
 
         def conv(ci: int, co: int, stride: int = 1) -> nn.Sequential:
             return nn.Sequential(nn.Conv2d(ci, co, 3, stride, 1, bias=False), nn.GroupNorm(8, co), nn.SiLU())
@@ -153,16 +161,28 @@ class FullResolutionCNN(nn.Module):
 
 
 def train_hybrid(
-    params, images, cues, theta, val, epochs: int, seed: int, device: str, flip: bool = False
+    params,
+    images,
+    cues,
+    theta,
+    val,
+    epochs: int,
+    seed: int,
+    device: str,
+    flip: bool = False,
+    with_cues: bool = True,
+    widths: tuple[int, ...] | None = None,
 ) -> tuple[NPE, Callable[[np.ndarray, torch.Tensor], torch.Tensor], dict]:
     """Train the hybrid (CNN embedding ⊕ standardized cues → flow) jointly; returns the flow, the map (images, cues) ↦
     its contexts (the trained CNN, in eval mode) and the training's figures. ``flip``: the
-    CNN sees each training image mirrored left-right with probability 1/2 (the weather is mirror-invariant)."""
+    CNN sees each training image mirrored left-right with probability 1/2 (the weather is mirror-invariant);
+    ``with_cues=False``: the CNN's embedding alone is the context; ``widths``: the CNN's (default: its own)."""
     torch.manual_seed(seed)
     mean, std = cues.mean(0), cues.std(0).clamp_min(1e-6)
-    cnn = FullResolutionCNN().to(device)
+    cnn = FullResolutionCNN(widths=widths or WIDTHS).to(device)
     fc = dataclasses.replace(flow_config(params.train, size=len(images), trainable=True), standardize=False)
-    flow = NPE(None, cnn.head.out_features + cues.shape[1], params.box, fc, seed=seed).to(device)
+    width = cnn.head.out_features + (cues.shape[1] if with_cues else 0)
+    flow = NPE(None, width, params.box, fc, seed=seed).to(device)
     parameters = [*cnn.parameters(), *flow.parameters()]
     opt = torch.optim.AdamW(parameters, lr=params.train.lr, weight_decay=params.train.weight_decay)
     batch = params.train.batch_size
@@ -172,7 +192,7 @@ def train_hybrid(
     th = theta.to(device)
 
     def context(imgs: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-        return torch.cat([cnn(imgs), (c - mean) / std], 1)
+        return torch.cat([cnn(imgs), (c - mean) / std], 1) if with_cues else cnn(imgs)
 
     t0, gen = time.perf_counter(), torch.Generator(device="cpu").manual_seed(seed)
     for epoch in range(epochs):
@@ -192,7 +212,10 @@ def train_hybrid(
             opt.step()
             sched.step()
             total += float(loss.detach())
-        print(f"  hybrid-{len(images)} epoch {epoch + 1}/{epochs}: train NLL {total / (i + 1):.3f}", flush=True)
+        print(
+            f"  {'hybrid' if with_cues else 'cnn'}-{len(images)} epoch {epoch + 1}/{epochs}: train NLL {total / (i + 1):.3f}",
+            flush=True,
+        )
     cnn.eval()
 
     def contexts(imgs: np.ndarray, c: torch.Tensor) -> torch.Tensor:
@@ -211,14 +234,22 @@ def train_hybrid(
     return (
         flow,
         contexts,
-        {"epochs_run": epochs, "flip": flip, "train_seconds": round(time.perf_counter() - t0, 1), **tempered},
+        {
+            "epochs_run": epochs,
+            "flip": flip,
+            "with_cues": with_cues,
+            "widths": list(cnn.widths),
+            "train_seconds": round(time.perf_counter() - t0, 1),
+            **tempered,
+        },
     )
 
 
 def _parse(name: str, epochs: int, params) -> tuple[str, int, int, bool, dict | None]:
     """A model's name → (kind, size, epochs, flip, setting): ``cues-<size>`` (the pipeline's settings for the size, as
     a :func:`~benchmarks.bench_levers.parse_setting` dict), ``cues-v4-<size>…`` (a ``bench_levers.py`` setting on the
-    cues alone) or ``hybrid-<size>[-e<epochs>][-f]``; ``ValueError`` naming the grammar otherwise."""
+    cues alone) or an image model ``hybrid-<size>[-e<epochs>][-f][-s]`` / ``cnn-<size>[-e<epochs>][-f][-s]`` (its
+    setting ``{"with_cues": …, "widths": …}``); ``ValueError`` naming the grammar otherwise."""
     if name.startswith("cues-v"):
         s = parse_setting(name)
         if s["version"] != "v4" or s["tiny"] or s["sky_rows"] or s["mirror"]:
@@ -226,13 +257,17 @@ def _parse(name: str, epochs: int, params) -> tuple[str, int, int, bool, dict | 
                 f"model {name!r}: this benchmark computes the version-4 cues alone (cues-v4-<size>…, no -m)"
             )
         return "cues", s["size"], 0, False, s
-    m = re.fullmatch(r"(cues|hybrid)-(\d+)(?:-e(\d+))?(-f)?", name)
-    if not m or (m[1] == "cues" and (m[3] or m[4])):
+    m = re.fullmatch(r"(cues|hybrid|cnn)-(\d+)(?:-e(\d+))?(-f)?(-s)?", name)
+    if not m or (m[1] == "cues" and (m[3] or m[4] or m[5])):
         raise ValueError(
-            f"model {name!r}: expected cues-<size>, a bench_levers setting cues-v4-<size>… or hybrid-<size>[-e<epochs>][-f]"
+            f"model {name!r}: expected cues-<size>, a bench_levers setting cues-v4-<size>…, "
+            "hybrid-<size>[-e<epochs>][-f][-s] or cnn-<size>[-e<epochs>][-f][-s]"
         )
     size = int(m[2])
-    return m[1], size, int(m[3] or epochs), bool(m[4]), pipeline_setting(params, size) if m[1] == "cues" else None
+    if m[1] == "cues":
+        return "cues", size, 0, False, pipeline_setting(params, size)
+    image = {"with_cues": m[1] == "hybrid", "widths": SMALL_WIDTHS if m[5] else WIDTHS}
+    return "image", size, int(m[3] or epochs), bool(m[4]), image
 
 
 def pipeline_setting(params, size: int) -> dict:
@@ -243,10 +278,13 @@ def pipeline_setting(params, size: int) -> dict:
     return {**s, "noise": noise, "temperature": params.train.temperature}
 
 
-def prepare(params, n_train: int, n_test: int, workers: int, device: str, cache: Path | None):
-    """Images (``{split: (n, H, W, 3) uint8}``, or None when read from ``cache``), cues ``{split: (n, 345)}`` float32
-    and θ ``{split: (n, 6)}`` float32 of the train split's first ``n_train`` images, val and the first ``n_test`` test
-    images; the cues and θ are kept in ``cache`` (``.npy``) when given, and read from there when it holds them."""
+def prepare(
+    params, n_train: int, n_test: int, workers: int, device: str, cache: Path | None, keep_images: bool = False
+):
+    """Images (``{split: (n, H, W, 3) uint8}``, or None when read from a ``cache`` that holds none), cues
+    ``{split: (n, 345)}`` float32 and θ ``{split: (n, 6)}`` float32 of the train split's first ``n_train`` images, val
+    and the first ``n_test`` test images; the cues and θ (and with ``keep_images`` the images) are kept in ``cache``
+    (``.npy``) when given, and read from there when it holds them (the images memory-mapped)."""
     sizes = {"train": n_train, "val": params.data.splits["val"], "test": n_test}
     if cache is not None and all((cache / f"cues_{k}.npy").is_file() for k in sizes):
         cues = {k: np.load(cache / f"cues_{k}.npy", mmap_mode="r") for k in sizes}
@@ -254,7 +292,11 @@ def prepare(params, n_train: int, n_test: int, workers: int, device: str, cache:
         short = [k for k, n in sizes.items() if len(cues[k]) < n]
         if short:
             raise ValueError(f"cache {cache}: splits {short} hold fewer images than asked ({sizes})")
-        return None, {k: np.asarray(cues[k][:n]) for k, n in sizes.items()}, {k: theta[k][:n] for k, n in sizes.items()}
+        images = None
+        if all((cache / f"images_{k}.npy").is_file() for k in sizes):
+            images = {k: np.load(cache / f"images_{k}.npy", mmap_mode="r")[:n] for k, n in sizes.items()}
+        cues_n = {k: np.asarray(cues[k][:n]) for k, n in sizes.items()}
+        return images, cues_n, {k: theta[k][:n] for k, n in sizes.items()}
     t0 = time.perf_counter()
     split = {k: render_split(params, k, n, workers) for k, n in sizes.items()}
     print(f"rendered {n_train} + val + test images in {time.perf_counter() - t0:.0f} s", flush=True)
@@ -268,6 +310,8 @@ def prepare(params, n_train: int, n_test: int, workers: int, device: str, cache:
     if cache is not None:
         cache.mkdir(parents=True, exist_ok=True)
         for k in sizes:
+            if keep_images:
+                np.save(cache / f"images_{k}.npy", split[k][0])
             np.save(cache / f"theta_{k}.npy", theta[k])
             np.save(cache / f"cues_{k}.npy", cues[k])  # last: its presence says the split is whole
     return {k: v[0] for k, v in split.items()}, cues, theta
@@ -292,6 +336,9 @@ def main(argv: list[str] | None = None) -> None:
         "--cues-device", default=None, help="where the cues models train (default: --device); cpu with --jobs > 1"
     )
     p.add_argument("--jobs", type=int, default=1, help="cues models trained at once, each in its own process")
+    p.add_argument(
+        "--image-jobs", type=int, default=1, help="image models (hybrid, cnn) trained at once on --device, in processes"
+    )
     p.add_argument("--threads", type=int, default=1, help="torch threads of each cues model's process")
     p.add_argument("--no-compile", action="store_true", help="never compile the cues models' training step")
     p.add_argument("--cache", type=Path, default=None, help="keep (or read) the cues and θ here (.npy)")
@@ -301,16 +348,19 @@ def main(argv: list[str] | None = None) -> None:
     params = load_params(ROOT / "params.yaml")
     a.out.mkdir(parents=True, exist_ok=True)
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
+    torch.backends.cudnn.benchmark = True  # the fastest convolution algorithms for the image models' fixed shapes
     cues_device = a.cues_device or a.device
     if a.jobs > 1 and (cues_device != "cpu" or a.cache is None):
         raise ValueError(
             "--jobs > 1 trains the cues models in processes on the CPU: give --cues-device cpu and --cache"
         )
+    if a.image_jobs > 1 and a.cache is None:
+        raise ValueError("--image-jobs > 1 trains the image models in processes that read the images: give --cache")
     t0 = time.perf_counter()
     models = [_parse(m, a.hybrid_epochs, params) for m in a.models]  # every name checked before any work
     n_train = max(size for _, size, *_ in models)
     n_test = a.test or params.data.splits["test"]
-    images, cues, theta = prepare(params, n_train, n_test, a.workers, a.device, a.cache)
+    images, cues, theta = prepare(params, n_train, n_test, a.workers, a.device, a.cache, keep_images=a.image_jobs > 1)
     summary = {
         "machine": machine_info(threads=a.threads),
         "device": torch.cuda.get_device_name() if a.device == "cuda" else "cpu",
@@ -331,24 +381,32 @@ def main(argv: list[str] | None = None) -> None:
         )
 
     children: dict[str, subprocess.Popen] = {}
+
+    def spawn(name: str, device: str, jobs: int, kind: str) -> None:
+        """Train model ``name`` in a process of its own (at most ``jobs`` of this kind at once); it writes its JSON."""
+        while sum(c.poll() is None for n, c in children.items() if kinds[n] == kind) >= jobs:
+            time.sleep(2)
+        argv_child = [sys.executable, __file__, "--models", name, "--cache", str(a.cache), "--out", str(a.out)]
+        argv_child += ["--device", device, "--threads", str(a.threads), "--seed", str(a.seed)]
+        argv_child += ["--samples", str(a.samples), "--test", str(n_test), "--child"]
+        argv_child += ["--no-compile"] if a.no_compile else []
+        log = (a.out / f"{name}.log").open("w")
+        children[name] = subprocess.Popen(argv_child, stdout=log, stderr=subprocess.STDOUT)
+        print(f"{name}: training in process {children[name].pid} (log {a.out / name}.log)", flush=True)
+
+    kinds = {name: kind for name, (kind, *_) in zip(a.models, models, strict=True)}
     for name, (kind, size, epochs, flip, setting) in zip(a.models, models, strict=True):
         if kind == "cues" and a.jobs > 1:
-            while sum(c.poll() is None for c in children.values()) >= a.jobs:
-                time.sleep(2)
-            argv_child = [sys.executable, __file__, "--models", name, "--cache", str(a.cache), "--out", str(a.out)]
-            argv_child += ["--device", "cpu", "--threads", str(a.threads), "--seed", str(a.seed)]
-            argv_child += ["--samples", str(a.samples), "--test", str(n_test), "--child"]
-            argv_child += ["--no-compile"] if a.no_compile else []
-            log = (a.out / f"{name}.log").open("w")
-            children[name] = subprocess.Popen(argv_child, stdout=log, stderr=subprocess.STDOUT)
-            print(f"{name}: training in process {children[name].pid} (log {a.out / name}.log)", flush=True)
+            spawn(name, "cpu", a.jobs, kind)
+        elif kind == "image" and a.image_jobs > 1:
+            spawn(name, a.device, a.image_jobs, kind)
         elif kind == "cues":
             torch.set_num_threads(a.threads)
             r = fit(setting, cues, theta, params, a.samples, a.seed, device=cues_device, compile=not a.no_compile)
             record(name, {"setting": name, **r})
         else:
             if images is None:
-                raise ValueError(f"model {name!r}: a hybrid needs the images; the cache holds only the cues")
+                raise ValueError(f"model {name!r}: an image model needs the images; the cache holds only the cues")
             val = (images["val"], torch.from_numpy(cues["val"]).to(a.device), torch.from_numpy(theta["val"]))
             flow, contexts, info = train_hybrid(
                 params,
@@ -360,6 +418,7 @@ def main(argv: list[str] | None = None) -> None:
                 a.seed,
                 a.device,
                 flip,
+                **setting,
             )
             r = score(
                 flow,

@@ -77,7 +77,7 @@ def fit_gate(context: Tensor, inside: Tensor, l2: float = 1e-3) -> tuple[Tensor,
         raise ValueError(
             f"the gate needs contexts (N, F) and regime labels (N,), got {tuple(context.shape)}, {tuple(inside.shape)}"
         )
-    y = inside.to(torch.float64)
+    y = inside.to(device=context.device, dtype=torch.float64)
     share = float(y.mean()) if len(y) else 0.0
     if not 0.0 < share < 1.0:
         raise ValueError(
@@ -89,8 +89,8 @@ def fit_gate(context: Tensor, inside: Tensor, l2: float = 1e-3) -> tuple[Tensor,
         raise ValueError("the contexts are not finite: the gate of the regime's base scale cannot be fitted")
     mean, std = c.mean(0), c.std(0).clamp_min(1e-8)
     cs = (c - mean) / std
-    w = torch.zeros(c.shape[1], dtype=torch.float64, requires_grad=True)
-    b = torch.zeros((), dtype=torch.float64, requires_grad=True)
+    w = torch.zeros(c.shape[1], dtype=torch.float64, device=c.device, requires_grad=True)
+    b = torch.zeros((), dtype=torch.float64, device=c.device, requires_grad=True)
     opt = torch.optim.LBFGS([w, b], max_iter=200, tolerance_grad=1e-10, line_search_fn="strong_wolfe")
 
     def closure() -> Tensor:

@@ -128,7 +128,7 @@ def fit_temperature(eps: Tensor, ladj: Tensor, gate: Tensor | None = None) -> Te
         if eps.shape[0] == 1:
             return start
         return _maximize(eps, ladj, start, torch.exp)
-    p = torch.as_tensor(gate, dtype=torch.float64)
+    p = torch.as_tensor(gate, dtype=torch.float64, device=eps.device)
     if p.shape != eps.shape[1:2] or not bool(((p >= 0) & (p <= 1)).all()):
         raise ValueError(f"the gate must be {eps.shape[1]} probabilities in [0, 1], one per pair, got {tuple(p.shape)}")
     sides = [p < 0.5, p >= 0.5]
@@ -154,7 +154,7 @@ def fit_regime_gate(model: NPE, x: Tensor, theta: Tensor, regime: Regime) -> dic
     Returns ``{"regime_share": …, "regime_gate_train_accuracy": …}``.
     """
     context = _contexts(model, x)
-    inside = regime.holds(theta)
+    inside = regime.holds(theta).to(context.device)
     weight, bias = fit_gate(context, inside)
     model.set_regime_gate(weight, bias)
     accuracy = float(((model.regime_probability(context) >= 0.5) == inside).double().mean())
@@ -182,10 +182,10 @@ def calibrate(model: NPE, x: Tensor, theta: Tensor, regime: Regime | None = None
     extra: dict[str, float] = {}
     if regime is not None:
         gate = model.regime_probability(_contexts(model, x)).double()
-        extra["regime_gate_accuracy"] = float(((gate >= 0.5) == regime.holds(theta)).double().mean())
+        extra["regime_gate_accuracy"] = float(((gate >= 0.5) == regime.holds(theta).to(gate.device)).double().mean())
     tau = fit_temperature(eps, ladj, gate)
     per_pair = tau if gate is None else torch.exp((1 - gate[:, None]) * tau[0].log() + gate[:, None] * tau[1].log())
-    before = float(tempered_nll(eps, ladj, torch.ones(model.dim, dtype=torch.float64)))
+    before = float(tempered_nll(eps, ladj, torch.ones(model.dim, dtype=torch.float64, device=eps.device)))
     after = float(tempered_nll(eps, ladj, per_pair))
     model.set_temperature(tau)
     names = model.box.names

@@ -8,7 +8,8 @@ calibration error beside the band of a perfectly calibrated model on as many ima
 superiority π, test NLL, information gain, a quantitative posterior predictive check, and per parameter
 (:mod:`components.evaluate.marginals`) interval widths and coverage, median errors and marginal information gain, for
 all, day and night truths. Writes ``reports/task1/``: ``metrics.json`` (model → headline metrics), ``models/<model>.json``
-(one flat row per model: the DVC metrics), ``parameters.json`` (model → subset → parameter → figures), ``coverage.json``,
+(one flat row per model: the DVC metrics), ``parameters.json`` (model → subset → parameter → figures), ``profiles.json``
+(the same by bin of the true value, :mod:`components.evaluate.profile`), ``coverage.json``,
 ``table.md`` (the README's results table) and PNG plots; logs them to each model's MLflow run; names the champion
 (:mod:`components.evaluate.champion`): MLflow aliases ``champion`` and ``challenger`` (the runner-up) and the pointer
 ``reports/task1/champion.json``.
@@ -25,7 +26,7 @@ from prefect import flow, task
 from components import plots
 from components.core import seeding
 from components.core.files import atomic_write_bytes
-from components.evaluate import marginals, report, task1
+from components.evaluate import marginals, profile, report, task1
 from components.evaluate.champion import NoChampionError, champion_pointer, choose_champion
 from components.export.lookup import CHAMPION_POINTER
 from components.export.runtime import OnnxPosterior
@@ -63,7 +64,9 @@ def evaluate_model(model_id: str, params_path: str, band: float) -> dict:
     drawn = time.perf_counter()
     metrics, coverage, pi = task1.task1_metrics(lp, lp_truth, params.box.log_volume(), band)
     metrics |= {"images": n, "samples": ev.samples}
-    parameters = marginals.parameter_report(samples, truth, params.box)
+    scores = marginals.marginal_scores(samples, truth, params.box)
+    parameters = marginals.summarize_subsets(scores, truth, params.box)
+    profiles = profile.truth_profile(scores, truth, params.box, ev.profile_bins)
     scored = time.perf_counter()
 
     # posterior predictive checks: the same scene re-rendered under posterior and prior draws
@@ -93,6 +96,10 @@ def evaluate_model(model_id: str, params_path: str, band: float) -> dict:
             ),
             plot_dir / "ppc.png",
         )
+    plots.save_figure(
+        plots.truth_profile_plot(profiles, title=f"{model_id}: Task I across the true value ({n} test images)"),
+        plot_dir / "profile.png",
+    )
     for i in range(min(ev.example_images, n)):
         plots.save_figure(
             plots.marginal_histograms(samples[i], lp[i], truth[i], box=params.box), plot_dir / f"histograms-{i}.png"
@@ -128,6 +135,7 @@ def evaluate_model(model_id: str, params_path: str, band: float) -> dict:
         "coverage": coverage.tolist(),
         "pi": pi.tolist(),
         "parameters": parameters,
+        "profiles": profiles,
     }
 
 
@@ -172,6 +180,7 @@ def evaluate(params_path: str) -> dict:
     parameters = {r["model"]: r["parameters"] for r in results}
     _write_json(out / "metrics.json", metrics)
     _write_json(out / "parameters.json", parameters)
+    _write_json(out / "profiles.json", {r["model"]: r["profiles"] for r in results})
     rows = {m: report.model_row(metrics[m], parameters[m]) for m in ids}
     for m, row in rows.items():
         _write_json(out / "models" / f"{m}.json", row)

@@ -183,6 +183,7 @@ MISSING = [
     "train.mirror",
     "train.ensemble_min_size",
     "evaluate.samples",
+    "evaluate.profile_bins",
     "simulator.carla.fov",
     "monitor",
     "monitor.alarm_level",
@@ -251,6 +252,10 @@ def test_unknown_key_is_named():
             r"evaluate\.samples: Input should be greater than or equal to 400",
         ),
         (lambda d: d["evaluate"].update(images=5000), r"evaluate.images is 5000 but the test split has only 2000"),
+        (
+            lambda d: d["evaluate"].update(profile_bins=0),
+            r"evaluate\.profile_bins: Input should be greater than or equal to 1",
+        ),
         (lambda d: d.pop("seed") and d.update(seed=None), r"seed"),
         (lambda d: d["export"].update(exporter="tf"), r"export\.exporter"),
         (lambda d: d["task2"]["fixed"].pop("cloudiness"), r"task2\.fixed: .*must give exactly"),

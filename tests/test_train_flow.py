@@ -250,7 +250,11 @@ def test_export_evaluate_champion(project, monkeypatch, capsys):
     assert set(rows) == set(metrics) and len({tuple(r) for r in rows.values()}) == 1, "one row per model, same keys"
     parameters = json.loads((folder / "reports/task1/parameters.json").read_text())
     assert sum(parameters["cnn-8"][s]["fog_density"]["images"] for s in ("day", "night")) == 8
+    profiles = json.loads((folder / "reports/task1/profiles.json").read_text())
+    assert set(profiles) == set(metrics) and sum(profiles["cnn-8"]["all"]["fog_density"]["images"]) == 8
+    assert (folder / "reports/task1/plots/cnn-8/profile.png").is_file()
     version = client.get_model_version_by_alias("pidc", "champion")
+    assert "task1/profile.png" in {f.path for f in client.list_artifacts(version.run_id, "task1")}
     assert version.tags["pidc.model"] == best
     assert float(version.tags["task1.calibration_error"]) == pytest.approx(metrics[best]["calibration_error"], rel=1e-5)
     assert (

@@ -248,6 +248,8 @@ class EvaluateConfig(_Section):
     ppc_renders: Annotated[int, Field(ge=2)]
     #: test images shown as histograms and corner plots per model
     example_images: NonNegativeInt
+    #: equal-width bins of each parameter's prior range: the errors and coverage by true value (``profiles.json``)
+    profile_bins: Annotated[int, Field(ge=1, le=100)]
     #: ``calibration_band``: this quantile of the calibration error of a perfectly calibrated model on the same
     #: images and samples, simulated ``band_replicates`` times (seeded); ``within_band``: the error is ≤ the band
     band_level: Annotated[float, Field(gt=0, lt=1)]

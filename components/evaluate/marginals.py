@@ -63,6 +63,7 @@ __all__ = [
     "coverage_interval",
     "median_interval",
     "summarize_scores",
+    "summarize_subsets",
     "parameter_report",
     "flat_errors",
 ]
@@ -295,11 +296,16 @@ def summarize_scores(scores: MarginalScores, mask: np.ndarray, names: tuple[str,
     return out
 
 
-def parameter_report(samples: object, truth: object, box: Box) -> dict[str, dict[str, dict[str, float]]]:
-    """``subset → parameter → figure``: :func:`summarize_scores` of :func:`marginal_scores` for every subset of
-    :func:`subset_masks` (``samples (N, n, d)``, ``truth (N, d)``, physical units)."""
-    scores = marginal_scores(samples, truth, box)
+def summarize_subsets(scores: MarginalScores, truth: object, box: Box) -> dict[str, dict[str, dict[str, float]]]:
+    """``subset → parameter → figure``: :func:`summarize_scores` of ``scores`` for every subset of
+    :func:`subset_masks` of their truths ``(N, d)`` (physical units)."""
     return {name: summarize_scores(scores, mask, box.names) for name, mask in subset_masks(truth, box).items()}
+
+
+def parameter_report(samples: object, truth: object, box: Box) -> dict[str, dict[str, dict[str, float]]]:
+    """``subset → parameter → figure``: :func:`summarize_subsets` of :func:`marginal_scores` (``samples (N, n, d)``,
+    ``truth (N, d)``, physical units)."""
+    return summarize_subsets(marginal_scores(samples, truth, box), truth, box)
 
 
 def flat_errors(report: Mapping[str, Mapping[str, Mapping[str, float]]], short: Mapping[str, str]) -> dict[str, float]:

@@ -4,7 +4,8 @@ Inputs are numpy arrays (θ in the order and physical units of :mod:`components.
 function returns a :class:`matplotlib.figure.Figure`, written with :func:`save_figure` (atomic, closes it).
 
 * Task I: :func:`marginal_histograms` (1st analysis), :func:`corner_plot` (2nd), :func:`ppc_sheet` (3rd),
-  :func:`coverage_plot` (4th), :func:`superiority_boxplot` (5th), :func:`parameter_heatmaps` (per parameter);
+  :func:`coverage_plot` (4th), :func:`superiority_boxplot` (5th), :func:`parameter_heatmaps` (per parameter),
+  :func:`truth_profile_plot` (per parameter and true value);
 * Task II: :func:`corner_compare`, :func:`marginals_overlay`, :func:`held_out_curve`, :func:`image_grid`;
 * Task III: :func:`boxplots_by_level`, :func:`roc_curves`;
 * training: :func:`loss_curves`;
@@ -22,6 +23,7 @@ from components.plots.images import image_grid, ppc_sheet
 from components.plots.marginals import marginal_hdr_histograms, marginal_histograms
 from components.plots.overlay import marginals_overlay
 from components.plots.parameters import parameter_heatmaps
+from components.plots.profile import truth_profile_plot
 from components.plots.relative import boxplots_by_level, roc_curves
 from components.plots.training import best_epoch, loss_curves
 
@@ -43,6 +45,7 @@ __all__ = [
     "model_styles",
     "superiority_boxplot",
     "parameter_heatmaps",
+    "truth_profile_plot",
     "ppc_sheet",
     "image_grid",
     "loss_curves",

@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_levers import mirror_map, parse_setting, tiny_columns  # noqa: E402
-from benchmarks.bench_scale import FullResolutionCNN, _parse, render_split  # noqa: E402
+from benchmarks.bench_scale import SMALL_WIDTHS, WIDTHS, FullResolutionCNN, _parse, render_split  # noqa: E402
 from components.core.config import load_params  # noqa: E402
 from components.features.backbones import get_backbone  # noqa: E402
 from components.simulate import dataset  # noqa: E402
@@ -102,9 +102,12 @@ def test_scale_models_grammar() -> None:
     assert setting["noise"] == pytest.approx(0.21 * (10000 / 50000 / params.train.flow.ensemble) ** 0.5)
     _, _, _, _, setting = _parse("cues-v4-100000-ens3-n0.05-t", 12, params)
     assert (setting["size"], setting["ensemble"], setting["noise"]) == (100000, 3, 0.05)
-    assert _parse("hybrid-50000", 12, params)[:4] == ("hybrid", 50000, 12, False)
-    assert _parse("hybrid-50000-e6-f", 12, params)[:4] == ("hybrid", 50000, 6, True)
-    for bad in ("cues-50000-e6", "cues-50000-f", "hybrid-50000-f-e6", "cnn-50000"):
+    assert _parse("hybrid-50000", 12, params) == ("image", 50000, 12, False, {"with_cues": True, "widths": WIDTHS})
+    assert _parse("hybrid-50000-e6-f", 12, params)[:4] == ("image", 50000, 6, True)
+    # the CNN alone, and at half its widths
+    assert _parse("cnn-200000-e6-f", 12, params)[4] == {"with_cues": False, "widths": WIDTHS}
+    assert _parse("hybrid-50000-e6-f-s", 12, params)[4] == {"with_cues": True, "widths": SMALL_WIDTHS}
+    for bad in ("cues-50000-e6", "cues-50000-f", "cues-50000-s", "hybrid-50000-f-e6", "cnn-50000-s-f", "tiny-50000"):
         with pytest.raises(ValueError, match="expected cues-<size>, a bench_levers setting"):
             _parse(bad, 12, params)
     for bad in ("cues-v3-50000", "cues-v4+sky3-50000", "cues-v4-50000-m"):

@@ -61,6 +61,11 @@ def _bin_of(values: np.ndarray, edges: np.ndarray) -> np.ndarray:
     return np.clip(np.searchsorted(edges, values, side="right") - 1, 0, len(edges) - 2)
 
 
+def _number(value: float) -> float | None:
+    """``value``, or None where it is NaN (an interval that too few images cannot give)."""
+    return None if np.isnan(value) else float(value)
+
+
 def _figures(scores: MarginalScores, j: int, rows: np.ndarray, centre: float, truth: np.ndarray, width: float) -> dict:
     """The :data:`FIGURES` of parameter ``j`` over the images ``rows`` (indices), one bin's worth (None if empty)."""
     k = rows.size
@@ -71,12 +76,11 @@ def _figures(scores: MarginalScores, j: int, rows: np.ndarray, centre: float, tr
     errors = scores.abs_error[rows, j]
     low, high = median_interval(errors)
     c_low, c_high = coverage_interval(hits, k)
-    finite = lambda v: None if np.isnan(v) else float(v)  # noqa: E731  too few images for an interval
     return {
         "images": int(k),
         "median_abs_error": float(np.median(errors)),
-        "median_abs_error_low": finite(low),
-        "median_abs_error_high": finite(high),
+        "median_abs_error_low": _number(low),
+        "median_abs_error_high": _number(high),
         "width68": float(scores.width[m, rows, j].mean() * width),
         "coverage68": hits / k,
         "coverage68_low": c_low,

@@ -47,7 +47,8 @@ def truth_profile_plot(
 
     Arguments:
         profile: ``subset → parameter name → {"edges", "images", "median_abs_error", …}``.
-        subsets: the subsets drawn, one colour each; the prior's error is drawn from the first.
+        subsets: the subsets drawn, one colour each; the prior's error is drawn from ``all`` (every image) where the
+            profile has it, else from the first subset.
     """
     if not isinstance(profile, Mapping) or not profile:
         raise ValueError("profile must be a non-empty mapping of subset → parameter → figures")
@@ -60,7 +61,7 @@ def truth_profile_plot(
         edges = _series(profile, subsets[0], name, "edges")
         centres = (edges[:-1] + edges[1:]) / 2
         top, bottom = axes[0, k], axes[1, k]
-        prior = np.nanmax([_series(profile, s, name, "prior_median_abs_error") for s in subsets], axis=0)
+        prior = _series(profile, "all" if "all" in profile else subsets[0], name, "prior_median_abs_error")
         top.plot(centres, prior, color="0.6", linestyle="--", label="prior")
         for j, subset in enumerate(subsets):
             colour = _COLOURS.get(subset, f"C{j}")

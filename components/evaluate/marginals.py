@@ -62,6 +62,7 @@ __all__ = [
     "subset_masks",
     "coverage_interval",
     "median_interval",
+    "parameter_figures",
     "summarize_scores",
     "summarize_subsets",
     "parameter_report",
@@ -272,28 +273,30 @@ def median_interval(values: np.ndarray, confidence: float = CONFIDENCE) -> tuple
     return float(v[low_rank - 1]), float(v[n - low_rank])
 
 
-def summarize_scores(scores: MarginalScores, mask: np.ndarray, names: tuple[str, ...]) -> dict[str, dict[str, float]]:
-    """Per parameter name, the :data:`FIGURES` over the images of ``mask (N,)``: their number, the mean interval widths
+def parameter_figures(scores: MarginalScores, mask: np.ndarray, j: int) -> dict[str, float]:
+    """The :data:`FIGURES` of parameter ``j`` over the images of ``mask (N,)``: their number, the mean interval widths
     (shares of the prior range), the coverages with their Clopper–Pearson intervals (:func:`coverage_interval`), the
     median |median − truth| (physical units) with its distribution-free interval (:func:`median_interval`) and the mean
-    marginal information gain (nats). NaN for an empty subset."""
+    marginal information gain (nats). NaN where no image is in ``mask``."""
     k = int(np.count_nonzero(mask))
     nan = float("nan")
-    out: dict[str, dict[str, float]] = {}
-    for j, name in enumerate(names):
-        fig: dict[str, float] = {"images": k}
-        for i, mass in enumerate(scores.masses):
-            tag = f"{round(100 * mass)}"
-            hits = int(np.count_nonzero(scores.covered[i, mask, j]))
-            fig[f"width{tag}"] = float(scores.width[i, mask, j].mean()) if k else nan
-            fig[f"coverage{tag}"] = hits / k if k else nan
-            fig[f"coverage{tag}_low"], fig[f"coverage{tag}_high"] = coverage_interval(hits, k)
-        errors = scores.abs_error[mask, j]
-        fig["median_abs_error"] = float(np.median(errors)) if k else nan
-        fig["median_abs_error_low"], fig["median_abs_error_high"] = median_interval(errors)
-        fig["info_gain_nats"] = float(scores.log_ratio[mask, j].mean()) if k else nan
-        out[name] = {key: fig[key] for key in FIGURES}
-    return out
+    fig: dict[str, float] = {"images": k}
+    for i, mass in enumerate(scores.masses):
+        tag = f"{round(100 * mass)}"
+        hits = int(np.count_nonzero(scores.covered[i, mask, j]))
+        fig[f"width{tag}"] = float(scores.width[i, mask, j].mean()) if k else nan
+        fig[f"coverage{tag}"] = hits / k if k else nan
+        fig[f"coverage{tag}_low"], fig[f"coverage{tag}_high"] = coverage_interval(hits, k)
+    errors = scores.abs_error[mask, j]
+    fig["median_abs_error"] = float(np.median(errors)) if k else nan
+    fig["median_abs_error_low"], fig["median_abs_error_high"] = median_interval(errors)
+    fig["info_gain_nats"] = float(scores.log_ratio[mask, j].mean()) if k else nan
+    return {key: fig[key] for key in FIGURES}
+
+
+def summarize_scores(scores: MarginalScores, mask: np.ndarray, names: tuple[str, ...]) -> dict[str, dict[str, float]]:
+    """Per parameter name, its :func:`parameter_figures` over the images of ``mask (N,)``."""
+    return {name: parameter_figures(scores, mask, j) for j, name in enumerate(names)}
 
 
 def summarize_subsets(scores: MarginalScores, truth: object, box: Box) -> dict[str, dict[str, dict[str, float]]]:

@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from components.core.weather import Box
-from components.evaluate.marginals import MarginalScores, coverage_interval, median_interval, subset_masks
+from components.evaluate.marginals import MarginalScores, parameter_figures, subset_masks
 
 __all__ = ["MASS", "FIGURES", "truth_bins", "truth_profile"]
 
@@ -61,31 +61,15 @@ def _bin_of(values: np.ndarray, edges: np.ndarray) -> np.ndarray:
     return np.clip(np.searchsorted(edges, values, side="right") - 1, 0, len(edges) - 2)
 
 
-def _number(value: float) -> float | None:
-    """``value``, or None where it is NaN (an interval that too few images cannot give)."""
-    return None if np.isnan(value) else float(value)
-
-
-def _figures(scores: MarginalScores, j: int, rows: np.ndarray, centre: float, truth: np.ndarray, width: float) -> dict:
-    """The :data:`FIGURES` of parameter ``j`` over the images ``rows`` (indices), one bin's worth (None if empty)."""
-    k = rows.size
-    if k == 0:
-        return {name: (0 if name == "images" else None) for name in FIGURES}
-    m = scores.masses.index(MASS)
-    hits = int(np.count_nonzero(scores.covered[m, rows, j]))
-    errors = scores.abs_error[rows, j]
-    low, high = median_interval(errors)
-    c_low, c_high = coverage_interval(hits, k)
+def _figures(scores: MarginalScores, j: int, mask: np.ndarray, centre: float, truth: np.ndarray, width: float) -> dict:
+    """The :data:`FIGURES` of parameter ``j`` over the images of ``mask (N,)``, one bin's worth: its
+    :func:`~components.evaluate.marginals.parameter_figures` (the width in physical units) and the prior's error; None
+    for what no image, or too few for an interval, can give."""
+    fig = parameter_figures(scores, mask, j)
+    fig["width68"] = float(fig["width68"] * width)
+    fig["prior_median_abs_error"] = float(np.median(np.abs(centre - truth[mask, j]))) if fig["images"] else np.nan
     return {
-        "images": int(k),
-        "median_abs_error": float(np.median(errors)),
-        "median_abs_error_low": _number(low),
-        "median_abs_error_high": _number(high),
-        "width68": float(scores.width[m, rows, j].mean() * width),
-        "coverage68": hits / k,
-        "coverage68_low": c_low,
-        "coverage68_high": c_high,
-        "prior_median_abs_error": float(np.median(np.abs(centre - truth[rows, j]))),
+        name: (int(fig[name]) if name == "images" else None if np.isnan(fig[name]) else fig[name]) for name in FIGURES
     }
 
 
@@ -106,7 +90,7 @@ def truth_profile(scores: MarginalScores, truth: object, box: Box, bins: int) ->
         out[subset] = {}
         for j, name in enumerate(box.names):
             per_bin = [
-                _figures(scores, j, np.flatnonzero(mask & (which[:, j] == b)), centre[j], t, box.width[j])
+                _figures(scores, j, mask & (which[:, j] == b), centre[j], t, box.width[j])
                 for b in range(edges.shape[1] - 1)
             ]
             out[subset][name] = {"edges": edges[j].tolist()} | {f: [fig[f] for fig in per_bin] for f in FIGURES}

@@ -1,4 +1,4 @@
-"""Task I per parameter and true value: one model's error and interval coverage across each parameter's range.
+"""Task I per parameter and true value: one model's error and interval width across each parameter's range.
 
 Input: the profile of :func:`components.evaluate.profile.truth_profile` (``subset → parameter → figure → list over
 the bins``, with the bins' ``edges``). Two rows of panels, one column per parameter:

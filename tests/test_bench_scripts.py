@@ -15,6 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_levers import mirror_map, parse_setting, tiny_columns  # noqa: E402
+from benchmarks.bench_puddles import LEVELS, ideal_errors  # noqa: E402
 from benchmarks.bench_scale import SMALL_WIDTHS, WIDTHS, FullResolutionCNN, _parse, render_split  # noqa: E402
 from components.core.config import load_params  # noqa: E402
 from components.features.backbones import get_backbone  # noqa: E402
@@ -47,7 +48,7 @@ def test_levers_settings_grammar() -> None:
     tuned = parse_setting("cues-v3-50000-e48-lr2e-3-wd0.001-n0.094-t")
     assert (tuned["epochs"], tuned["lr"], tuned["weight_decay"], tuned["noise"]) == (48, 2e-3, 1e-3, 0.094)
     bad_names = (
-        "cues-v5-5000",
+        "cues-v6-5000",
         "cues-v3+sky9-5000",
         "cues-v3+sky-5000",
         "cues-v3-tiny-5000",
@@ -73,7 +74,7 @@ def test_levers_mirror_map_is_the_features_of_the_mirrored_images() -> None:
         return torch.from_numpy(np.concatenate([get_backbone(b).extract(x) for b in ("cues", "tiny")], axis=1))
 
     every = tiny_columns(parse_setting("cues-v3+tiny-5000"))
-    np.testing.assert_allclose(mirror_map("v4", every)(joined(images)), joined(mirrored), rtol=1e-3, atol=2e-3)
+    np.testing.assert_allclose(mirror_map("v5", every)(joined(images)), joined(mirrored), rtol=1e-3, atol=2e-3)
     sky = tiny_columns(parse_setting("cues-v3+sky3-5000"))  # the L*a*b* of the upper three lattice rows
     assert len(sky) == 72
 
@@ -84,10 +85,12 @@ def test_levers_mirror_map_is_the_features_of_the_mirrored_images() -> None:
     np.testing.assert_allclose(mirror_map("v3", sky)(joined_sky(images)), joined_sky(mirrored), rtol=1e-3, atol=2e-3)
     # version 4 is version 3 joined by +sky3: the same columns, and the same mirror permutation
     np.testing.assert_array_equal(
-        get_backbone("cues").extract(images)[:, 273:], get_backbone("tiny").extract(images)[:, sky]
+        get_backbone("cues").extract(images)[:, 273:345], get_backbone("tiny").extract(images)[:, sky]
     )
     columns = torch.arange(345.0)[None]
     assert torch.equal(mirror_map("v4", None)(columns), mirror_map("v3", sky)(columns))
+    v5 = torch.arange(363.0)[None]  # version 5 adds the wet road's bands, each its own mirror image
+    assert torch.equal(mirror_map("v5", None)(v5)[:, 345:], v5[:, 345:])
     v1 = torch.arange(80.0)[None]  # the version-1 columns mirror among themselves (edge orientations)
     assert sorted(mirror_map("v1", None)(v1)[0].tolist()) == v1[0].tolist()
 
@@ -142,3 +145,19 @@ def test_full_resolution_cnn_shapes() -> None:
     images = torch.randint(0, 256, (3, 128, 128, 3), dtype=torch.uint8)
     out = cnn(images)
     assert out.shape == (3, 16) and bool(torch.isfinite(out).all())
+
+
+def test_puddles_ideal_reader_on_a_known_problem() -> None:
+    """bench_puddles' ideal reader: exact without spread; with Gaussian spread σ on a linear curve, its median error is
+    the median |noise| (0.674 σ), in deposits units."""
+    levels = len(LEVELS)
+    curve = LEVELS / 100.0
+    exact = np.broadcast_to(curve, (50, 1, levels)).copy()
+    assert ideal_errors(exact, [0]).max() == 0.0
+    sigma = 0.05
+    noisy = curve + np.random.default_rng(0).normal(0.0, sigma, (400, 1, levels))
+    err = ideal_errors(noisy, [0])[:, 40:-40]  # away from the ends, where the grid clips the guess
+    assert abs(np.median(err) - 0.674 * sigma * 100) < 0.25
+    # two independent bands of the same spread: the error shrinks by √2
+    two = curve + np.random.default_rng(1).normal(0.0, sigma, (400, 2, levels))
+    assert abs(np.median(ideal_errors(two, [0, 1])[:, 40:-40]) - 0.674 * sigma * 100 / np.sqrt(2)) < 0.25

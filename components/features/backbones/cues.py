@@ -66,13 +66,22 @@ Version 4 adds the sky's thumbnail (72):
   first three lattice rows, to the bit. The glow around a sun low in the sky, its height and colour (the air mass),
   finer than the cues' 4×4 grid, and where clouds break the sky's gradient.
 
+Version 5 adds the wet road by distance (18), from a small learned detector of flooded road pixels, frozen
+(:mod:`components.features.backbones.wet_road`):
+
+- ``wet_road`` (18): in nine row bands from just below the horizon to ~5 m ahead, the share of the road that is wet
+  and the road's share of the band — deposits flood the road where a static puddle noise lies below their level, so the
+  wet share of the road follows deposits; 10–25 m ahead it averages many periods of the noise (an exact reader of
+  the shares by distance would read deposits to 3.0, against ~7 for the version-4 cues; ``benchmarks/bench_puddles.py``).
+  Unlike the other cues it is learned: from the renderer's own road and wet masks (``scripts/train_wet_road.py``).
+
 Measured (BENCHMARKS.md, "Models that read the images"): on 50 000 training images the flow on the 241 version-2
 cues gains 6.2 nats where the 80 version-1 cues gain 4.9; the 32 version-3 cues add 0.2 nats (rain's daytime
 error 5.3 → 4.8). The 72 version-4 cues add 0.07–0.10 nats with one flow and read the daytime sun to 5.3–5.7° instead
 of 6.3–6.5°; with two flows 7.47–7.51 nats, calibrated on two seeds (BENCHMARKS.md, "The sky's thumbnail beside the
 cues"). The thumbnail's lower rows are left out: beside the cues they made the flow overconfident about night fog.
 
-Why. It is the interpretable end of the backbone comparison: a flow on these 345 numbers can only use
+Why. It is the interpretable end of the backbone comparison: a flow on these 363 numbers can only use
 what physics says is visible, so comparing it with the learned ``cnn`` and the raw ``tiny`` thumbnail
 shows how much a learned representation adds. The region split assumes a forward-looking camera with
 the horizon near mid-image (true for the simulators' pitch of ±2°).
@@ -96,6 +105,8 @@ import torch.nn.functional as F
 
 from components.features.backbones.base import Backbone
 from components.features.backbones.tiny import linear_to_lab
+from components.features.backbones.wet_road import FEATURE_NAMES as _WET_ROAD_NAMES
+from components.features.backbones.wet_road import load_detector, wet_road_features
 
 __all__ = ["CuesBackbone", "FEATURE_NAMES", "MIRROR"]
 
@@ -151,6 +162,8 @@ def _names() -> tuple[str, ...]:
     ]
     # version 4: the sky's thumbnail
     names += [f"sky_lab_{ch}_{r}{c}" for ch in "Lab" for r in range(_SKY_ROWS) for c in range(_SKY_LATTICE)]
+    # version 5: the wet road by distance (a frozen learned detector)
+    names += list(_WET_ROAD_NAMES)
     return tuple(names)
 
 
@@ -162,7 +175,7 @@ def _mirror_partner(name: str) -> str:
     """The feature that ``name`` becomes when the image is mirrored left-right: grid column c ↔ 3 − c, sky thumbnail
     column c ↔ 7 − c, left ↔ right wall, edge-orientation bin k ↔ (8 − k) mod 8 (the slant changes sign), ╱ ↔ ╲ ridges;
     itself for every feature of a region symmetric about the vertical midline (rows, bands, the road, the sky,
-    whole-image statistics)."""
+    whole-image statistics; the wet road's bands, whose detector is mirror-equivariant)."""
     if m := re.fullmatch(r"(grid_log_\w+?)(\d)(\d)", name):
         return f"{m[1]}{m[2]}{3 - int(m[3])}"
     if m := re.fullmatch(r"(sky_lab_\w_)(\d)(\d)", name):
@@ -381,17 +394,29 @@ def _orientation_histogram(v: torch.Tensor, bins: int = 8) -> torch.Tensor:
 
 
 class CuesBackbone(Backbone):
-    """Physical weather cues (345 features); frozen, no weights. See the module docstring."""
+    """Physical weather cues (363 features); frozen: no trained weights but the wet-road detector's. See the module
+    docstring."""
 
     name: ClassVar[str] = "cues"
     # 4.1: the sky's lattice converted to L*a*b* whole, as the tiny backbone converts it (version 4 sliced its rows
-    # first: the same features but 1 ULP apart from the tiny's on some CPUs); cached features of "4" are recomputed
-    version: ClassVar[str] = "4.1"
+    # first: the same features but 1 ULP apart from the tiny's on some CPUs); cached features of "4" are recomputed.
+    # 5: the wet road by distance (the detector's weights are in the fingerprint too)
+    version: ClassVar[str] = "5"
     dim: int = len(FEATURE_NAMES)
     trainable: bool = False
     input_size: tuple[int, int] = (128, 128)
     feature_names: tuple[str, ...] = FEATURE_NAMES
     cpu_chunk: ClassVar[int | None] = 16  # 0.6–0.7× the time of whole batches of 256 (BENCHMARKS.md)
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.wet_road = load_detector()  # frozen, in eval mode; its weights checked against their card
+
+    def train(self, mode: bool = True) -> CuesBackbone:
+        """Modules' training mode; the wet-road detector stays in eval mode (its batch norm is frozen)."""
+        super().train(mode)
+        self.wet_road.eval()
+        return self
 
     def config(self) -> dict[str, Any]:
         return {"input_size": list(self.input_size)}
@@ -401,7 +426,7 @@ class CuesBackbone(Backbone):
         return MIRROR
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → cues ``(n, 345)`` float32 (:data:`FEATURE_NAMES`).
+        """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → cues ``(n, 363)`` float32 (:data:`FEATURE_NAMES`).
 
         Region and colour statistics use the 2×2 area-averaged 64×64 image (4× cheaper, same means);
         contrast, edges and the clipped/dark fractions use full resolution (thin streaks, lamps).
@@ -502,6 +527,9 @@ class CuesBackbone(Backbone):
         # vectorize differently and round 1 ULP apart on some CPUs (AVX-512); then the upper rows
         lab = linear_to_lab(F.adaptive_avg_pool2d(lin_full, _SKY_LATTICE))
         feats.append(lab[:, :, :_SKY_ROWS].flatten(1) / 100.0)
+        # the detector reads 128×128 rows (the image converted by area interpolation when of another size)
+        x128 = x if tuple(x.shape[-2:]) == (128, 128) else F.interpolate(x, size=(128, 128), mode="area")
+        feats.append(wet_road_features(self.wet_road, x128))
         out = torch.cat(feats, dim=1)
         if out.shape[1] != self.dim:  # internal consistency of FEATURE_NAMES and the code above
             raise RuntimeError(f"cues: computed {out.shape[1]} features, FEATURE_NAMES has {self.dim}")

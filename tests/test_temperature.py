@@ -109,6 +109,31 @@ def test_bad_temperatures_are_refused() -> None:
         fit_temperature(torch.zeros(1, 1, 2), torch.zeros(1, 1))
 
 
+def test_regime_temperature_needs_the_weight_of_two_pairs_per_side() -> None:
+    """The gated fit needs two pairs on each side of p = ½ or a weight of two (Σ(1 − p), Σ p): a side of one pair but
+    enough weight (gates near ½) is fitted, from the gate-weighted closed form, to the likelihood maximum."""
+    g = torch.Generator().manual_seed(0)
+    eps = torch.randn(1, 8, 2, generator=g, dtype=torch.float64) * torch.tensor([1.3, 0.8], dtype=torch.float64)
+    ladj = torch.zeros(1, 8, dtype=torch.float64)
+    near_half = torch.tensor([0.03, 0.79, 0.51, 0.96, 0.999, 0.999, 0.999, 0.51], dtype=torch.float64)
+    tau = fit_temperature(eps, ladj, near_half)  # one pair under ½, a weight of 2.2 outside the regime
+    assert tau.shape == (2, 2) and bool(torch.isfinite(tau).all() and (tau > 0).all())
+
+    def nll(t: torch.Tensor) -> float:
+        w = near_half.unsqueeze(-1)
+        return float(tempered_nll(eps, ladj, torch.exp((1 - w) * t[0].log() + w * t[1].log())))
+
+    best = nll(tau)
+    for i in range(2):
+        for j in range(2):
+            for f in (1.05, 0.95):
+                step = torch.ones(2, 2, dtype=tau.dtype)
+                step[i, j] = f
+                assert nll(tau * step) > best - 1e-9
+    with pytest.raises(ValueError, match=r"puts 7 of the 8 held-out pairs in the regime, a weight of 6\.40 .* against 1\.60"):
+        fit_temperature(eps, ladj, torch.tensor([0.9] * 7 + [0.1], dtype=torch.float64))
+
+
 def test_saved_model_keeps_its_temperature_and_an_older_file_is_named(tmp_path) -> None:
     from components.posterior.store import load_npe, save_npe
 

@@ -120,7 +120,8 @@ def fit_temperature(eps: Tensor, ladj: Tensor, gate: Tensor | None = None) -> Te
     Without ``gate``: τ ``(d,)``; K = 1: τ_d = √(mean ε_d²) exactly, K > 1: L-BFGS on log τ from the members' pooled
     closed form. With ``gate`` p ``(N,)`` in [0, 1], each pair's probability of lying in the regime: τ ``(2, d)``
     (rows: outside, inside the regime), pair i tempered by log τᵢ = (1 − pᵢ) log τ_out + pᵢ log τ_in; L-BFGS from the
-    closed forms of the pairs on either side of p = ½.
+    closed forms of the pairs on either side of p = ½ (of all pairs weighted by the gate for a side of fewer than two).
+    Each side needs two pairs or their weight (Σ (1 − pᵢ) ≥ 2, Σ pᵢ ≥ 2), else ``ValueError``.
     """
     eps, ladj = _checked(eps, ladj)
     if gate is None:
@@ -131,13 +132,25 @@ def fit_temperature(eps: Tensor, ladj: Tensor, gate: Tensor | None = None) -> Te
     p = torch.as_tensor(gate, dtype=torch.float64, device=eps.device)
     if p.shape != eps.shape[1:2] or not bool(((p >= 0) & (p <= 1)).all()):
         raise ValueError(f"the gate must be {eps.shape[1]} probabilities in [0, 1], one per pair, got {tuple(p.shape)}")
+    weights = torch.stack([1.0 - p, p])  # each pair's weight outside and inside the regime
+    effective = weights.sum(dim=1)
     sides = [p < 0.5, p >= 0.5]
-    if not all(bool(side.sum() >= 2) for side in sides):
+    if not all(bool(side.sum() >= 2) or float(e) >= 2.0 for side, e in zip(sides, effective, strict=True)):
         raise ValueError(
-            f"the gate puts {int(sides[1].sum())} of the {len(p)} held-out pairs in the regime: a base scale per regime "
-            "needs at least two pairs on each side (a larger validation split, or train.temperature_regime: null)"
+            f"the gate puts {int(sides[1].sum())} of the {len(p)} held-out pairs in the regime, a weight of "
+            f"{float(effective[1]):.2f} (Σ of its probabilities) against {float(effective[0]):.2f}: a base scale per "
+            "regime needs two pairs or a weight of two on each side (a larger validation split, or "
+            "train.temperature_regime: null)"
         )
-    start = torch.stack([eps[:, side].pow(2).mean(dim=(0, 1)).sqrt() for side in sides])
+    # the closed form of each side's pairs, or of all pairs weighted by the gate where a side holds fewer than two
+    start = torch.stack(
+        [
+            eps[:, side].pow(2).mean(dim=(0, 1)).sqrt()
+            if bool(side.sum() >= 2)
+            else (eps.pow(2).mean(dim=0) * w.unsqueeze(-1)).sum(dim=0).div(w.sum()).sqrt()
+            for side, w in zip(sides, weights, strict=True)
+        ]
+    )
     w = p.unsqueeze(-1)
     return _maximize(eps, ladj, start, lambda log_tau: torch.exp((1 - w) * log_tau[0] + w * log_tau[1]))
 

@@ -130,7 +130,9 @@ def test_regime_temperature_needs_the_weight_of_two_pairs_per_side() -> None:
                 step = torch.ones(2, 2, dtype=tau.dtype)
                 step[i, j] = f
                 assert nll(tau * step) > best - 1e-9
-    with pytest.raises(ValueError, match=r"puts 7 of the 8 held-out pairs in the regime, a weight of 6\.40 .* against 1\.60"):
+    with pytest.raises(
+        ValueError, match=r"puts 7 of the 8 held-out pairs in the regime, a weight of 6\.40 .* against 1\.60"
+    ):
         fit_temperature(eps, ladj, torch.tensor([0.9] * 7 + [0.1], dtype=torch.float64))
 
 

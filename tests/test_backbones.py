@@ -105,14 +105,19 @@ def test_shapes_dtypes_and_determinism(name: str, textures: np.ndarray) -> None:
 
 @pytest.mark.parametrize("name", ["cues", "tiny"])
 def test_calls_in_chunks_give_the_features_of_whole_batches_to_the_bit(name: str, renders: dict) -> None:
-    """``cpu_chunk`` is a matter of speed only: the cached features do not depend on it (nor on the batch size)."""
+    """``cpu_chunk`` is a matter of speed only: the cached features do not depend on it (nor on the batch size). The
+    cues' wet-road block is the exception: its detector's convolutions round by the call's batch (to ~1e-7), so its
+    columns agree to 1e-6 only; the features stage always calls it in the same chunks."""
     images = np.concatenate(list(renders.values()))  # 20 rendered images: chunks of 16 leave a tail of 4
     b = _quiet(name)
     assert b.cpu_chunk == 16  # the setting the features stage runs
     chunked = _extract(b, images)
+    exact = np.array([not n.startswith("wet_road_") for n in b.feature_names]) if name == "cues" else slice(None)
     for chunk in (3, None):  # chunks with a tail of 2; the whole batch
         b.cpu_chunk = chunk
-        np.testing.assert_array_equal(_extract(b, images), chunked, err_msg=f"{name}, calls of {chunk}")
+        again = _extract(b, images)
+        np.testing.assert_array_equal(again[:, exact], chunked[:, exact], err_msg=f"{name}, calls of {chunk}")
+        np.testing.assert_allclose(again, chunked, rtol=1e-6, atol=1e-6, err_msg=f"{name}, calls of {chunk}")
 
 
 @pytest.mark.parametrize("name", EMBEDDED)

@@ -51,8 +51,9 @@ class Backbone(nn.Module):
     #: images per forward call within :meth:`extract`'s batches on a CPU (None: the whole batch). A forward that streams
     #: many full-image temporaries (the cues: ~60 of them) runs faster when a call's temporaries fit the CPU's caches.
     #: Set it only where each image's features are computed alone, so that they are the same to the bit in any chunk
-    #: (the cues and tiny; not the cnn, whose convolutions round by batch size; BENCHMARKS.md "Features and kernel
-    #: densities in cache-sized pieces")
+    #: (the tiny, and the cues but for their wet-road block, whose detector's convolutions round by batch to ~1e-7; not
+    #: the cnn, whose convolutions round by batch size; BENCHMARKS.md "Features and kernel densities in cache-sized
+    #: pieces")
     cpu_chunk: ClassVar[int | None] = None
 
     def __init__(self) -> None:

@@ -19,7 +19,8 @@ output and the features below are exactly mirror-invariant (``train.mirror``).
 
 The features (:data:`FEATURE_NAMES`, 2 per band of :data:`BANDS`): in each row band, the wet share of the road
 ``Σ p_wet / Σ (p_dry + p_wet)`` and the road's share of the band ``Σ (p_dry + p_wet) / pixels``, from the softmax
-probabilities.
+probabilities. The convolutions round by the call's batch (to ~1e-7): the same images in other
+chunks give these 18 columns to 1e-6, not to the bit; the features stage always calls the cues in the same chunks.
 
 Training (``python scripts/train_wet_road.py``): images of the
 embedded renderer under weathers drawn from the uniform prior (the sun azimuth too), two per scene, labelled with the

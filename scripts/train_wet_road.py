@@ -33,6 +33,7 @@ import torch.nn.functional as F  # noqa: E402
 
 from components.core import seeding  # noqa: E402
 from components.core.config import load_params  # noqa: E402
+from components.core.files import sha256_file  # noqa: E402
 from components.core.weather import Box, sample_azimuth, weather_from_theta  # noqa: E402
 from components.features.backbones import wet_road  # noqa: E402
 from components.simulate.procedural import ProceduralSimulator  # noqa: E402
@@ -177,7 +178,7 @@ def main(argv: list[str] | None = None) -> None:
         "torch": torch.__version__,
         "seconds": round(time.perf_counter() - t0, 1),
         "command": "python scripts/train_wet_road.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "sha256": wet_road.sha256(a.out),
+        "sha256": sha256_file(a.out),
     }
     a.out.with_suffix(".json").write_text(json.dumps(card, indent=1) + "\n")
     print(json.dumps(card["validation"]))

@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from components.core import seeding
+from components.core.files import sha256_file
 from components.features.backbones import wet_road
 from components.simulate.procedural import ProceduralSimulator
 
@@ -52,7 +53,7 @@ def test_shipped_detector_reads_the_wet_share() -> None:
     nearer (86–106) rises with the deposits, from a dry road to a flooded one, by more than 0.2."""
     net = wet_road.load_detector()
     card = json.loads(wet_road.CARD.read_text())
-    assert card["sha256"] == wet_road.sha256(wet_road.WEIGHTS) and card["channels"] == wet_road.CHANNELS
+    assert card["sha256"] == sha256_file(wet_road.WEIGHTS) and card["channels"] == wet_road.CHANNELS
     sim = ProceduralSimulator(128, 128)
     levels = (0.0, 35.0, 70.0, 100.0)
     wet = [k for k, n in enumerate(wet_road.FEATURE_NAMES) if n.startswith("wet_road_wet_share") and "_r6" not in n]

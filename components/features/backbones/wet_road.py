@@ -35,13 +35,14 @@ Used by :mod:`components.features.backbones.cues` (every stage but ``generate``,
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from components.core.files import sha256_file
 
 __all__ = [
     "BANDS",
@@ -129,11 +130,6 @@ def wet_road_features(net: WetRoadNet, x: torch.Tensor) -> torch.Tensor:
     return torch.stack(out, dim=1)
 
 
-def sha256(path: Path) -> str:
-    """The file's SHA-256 (hex)."""
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def load_detector(weights: Path = WEIGHTS, card: Path = CARD) -> WetRoadNet:
     """The frozen detector, in eval mode, its weights checked against the card's sha256.
 
@@ -147,7 +143,7 @@ def load_detector(weights: Path = WEIGHTS, card: Path = CARD) -> WetRoadNet:
                 f"{path}: the wet-road detector of the cues is missing (train it: python scripts/train_wet_road.py)"
             )
     meta = json.loads(card.read_text())
-    digest = sha256(weights)
+    digest = sha256_file(weights)
     if digest != meta.get("sha256"):
         raise ValueError(
             f"{weights}: sha256 {digest[:16]}… differs from {card}'s {str(meta.get('sha256'))[:16]}… "

@@ -106,18 +106,20 @@ def test_shapes_dtypes_and_determinism(name: str, textures: np.ndarray) -> None:
 @pytest.mark.parametrize("name", ["cues", "tiny"])
 def test_calls_in_chunks_give_the_features_of_whole_batches_to_the_bit(name: str, renders: dict) -> None:
     """``cpu_chunk`` is a matter of speed only: the cached features do not depend on it (nor on the batch size). The
-    cues' wet-road block is the exception: its detector's convolutions round by the call's batch (to ~1e-7), so its
-    columns agree to 1e-6 only; the features stage always calls it in the same chunks."""
+    cues' learned blocks are the exception: the wet-road detector's and the weather reader's convolutions round by the
+    call's batch (to ~1e-7 and ~1e-6), so their columns agree to 1e-5 only; the features stage always calls them in
+    the same chunks."""
     images = np.concatenate(list(renders.values()))  # 20 rendered images: chunks of 16 leave a tail of 4
     b = _quiet(name)
     assert b.cpu_chunk == 16  # the setting the features stage runs
     chunked = _extract(b, images)
-    exact = np.array([not n.startswith("wet_road_") for n in b.feature_names]) if name == "cues" else slice(None)
+    learned = ("wet_road_", "reader_")
+    exact = np.array([not n.startswith(learned) for n in b.feature_names]) if name == "cues" else slice(None)
     for chunk in (3, None):  # chunks with a tail of 2; the whole batch
         b.cpu_chunk = chunk
         again = _extract(b, images)
         np.testing.assert_array_equal(again[:, exact], chunked[:, exact], err_msg=f"{name}, calls of {chunk}")
-        np.testing.assert_allclose(again, chunked, rtol=1e-6, atol=1e-6, err_msg=f"{name}, calls of {chunk}")
+        np.testing.assert_allclose(again, chunked, rtol=1e-5, atol=1e-5, err_msg=f"{name}, calls of {chunk}")
 
 
 @pytest.mark.parametrize("name", EMBEDDED)
@@ -153,7 +155,7 @@ def test_single_image_is_a_batch_of_one(textures: np.ndarray) -> None:
 # -- cues -----------------------------------------------------------------------------------------------
 def test_cues_names_match_dim() -> None:
     b = get_backbone("cues")
-    assert b.dim == len(FEATURE_NAMES) == len(set(FEATURE_NAMES)) == 363
+    assert b.dim == len(FEATURE_NAMES) == len(set(FEATURE_NAMES)) == 375
 
 
 def test_cues_mirror_symmetry(textures: np.ndarray) -> None:
@@ -276,7 +278,7 @@ def test_mirror_inputs_flip_a_trainable_backbones_images_and_refuse_what_cannot_
     np.testing.assert_array_equal(cnn.mirror_inputs(x).numpy(), mirrored.numpy())
     with pytest.raises(ValueError, match="expects model inputs"):
         cnn.mirror_inputs(x.flatten(1))
-    with pytest.raises(ValueError, match=r"expects features \(n, 363\)"):
+    with pytest.raises(ValueError, match=r"expects features \(n, 375\)"):
         get_backbone("cues").mirror_inputs(torch.zeros(2, 7))
 
     class Opaque(Backbone):  # frozen features with no known symmetry (as a pretrained network's)

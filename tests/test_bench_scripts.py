@@ -48,7 +48,7 @@ def test_levers_settings_grammar() -> None:
     tuned = parse_setting("cues-v3-50000-e48-lr2e-3-wd0.001-n0.094-t")
     assert (tuned["epochs"], tuned["lr"], tuned["weight_decay"], tuned["noise"]) == (48, 2e-3, 1e-3, 0.094)
     bad_names = (
-        "cues-v6-5000",
+        "cues-v7-5000",
         "cues-v3+sky9-5000",
         "cues-v3+sky-5000",
         "cues-v3-tiny-5000",
@@ -74,7 +74,7 @@ def test_levers_mirror_map_is_the_features_of_the_mirrored_images() -> None:
         return torch.from_numpy(np.concatenate([get_backbone(b).extract(x) for b in ("cues", "tiny")], axis=1))
 
     every = tiny_columns(parse_setting("cues-v3+tiny-5000"))
-    np.testing.assert_allclose(mirror_map("v5", every)(joined(images)), joined(mirrored), rtol=1e-3, atol=2e-3)
+    np.testing.assert_allclose(mirror_map("v6", every)(joined(images)), joined(mirrored), rtol=1e-3, atol=2e-3)
     sky = tiny_columns(parse_setting("cues-v3+sky3-5000"))  # the L*a*b* of the upper three lattice rows
     assert len(sky) == 72
 
@@ -91,6 +91,8 @@ def test_levers_mirror_map_is_the_features_of_the_mirrored_images() -> None:
     assert torch.equal(mirror_map("v4", None)(columns), mirror_map("v3", sky)(columns))
     v5 = torch.arange(363.0)[None]  # version 5 adds the wet road's bands, each its own mirror image
     assert torch.equal(mirror_map("v5", None)(v5)[:, 345:], v5[:, 345:])
+    v6 = torch.arange(375.0)[None]  # version 6 adds the reader's guesses, each its own mirror image
+    assert torch.equal(mirror_map("v6", None)(v6)[:, 345:], v6[:, 345:])
     v1 = torch.arange(80.0)[None]  # the version-1 columns mirror among themselves (edge orientations)
     assert sorted(mirror_map("v1", None)(v1)[0].tolist()) == v1[0].tolist()
 

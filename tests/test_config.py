@@ -493,14 +493,13 @@ def test_ensembles_from_their_minimum_size():
     assert flow_config(t3, size=5000, trainable=False).ensemble == 1
     assert flow_config(t3, size=20000, trainable=True).ensemble == 3
     assert flow_config(t3, size=5000, trainable=False, ensemble=4).ensemble == 4
-    # an ensemble of K flows trains with 1/√K of one flow's input noise; a variant's count wins here too
+    # an ensemble of K flows trains with one flow's input noise, whatever its count
     from components.posterior.settings import input_noise_for, training_config
 
     one = t3.input_noise * math.sqrt(t3.scale_to / 20000)
-    assert input_noise_for(t3, 20000, trainable=False, features=273) == pytest.approx(one / math.sqrt(3))
-    assert input_noise_for(t3, 20000, trainable=False, features=273, ensemble=1) == pytest.approx(one)
+    assert input_noise_for(t3, 20000, trainable=False, features=273) == pytest.approx(one)
     two = training_config(t3, size=20000, trainable=False, features=273, seed=0, ensemble=2)
-    assert two.input_noise == pytest.approx(one / math.sqrt(2))
+    assert two.input_noise == pytest.approx(one)
     assert all(ensemble_for(t, n) == (t.flow.ensemble if n >= t.ensemble_min_size else 1) for n in t.sizes)
     with pytest.raises(ValueError, match="size must be a positive integer"):
         ensemble_for(t, 0)

@@ -137,32 +137,25 @@ def patience_for(train_section: TrainConfig, size: int) -> int:
     return math.ceil(train_section.patience * small_data_scale(train_section, size))
 
 
-def input_noise_for(
-    train_section: TrainConfig, size: int, *, trainable: bool, features: int, ensemble: int | None = None
-) -> float:
+def input_noise_for(train_section: TrainConfig, size: int, *, trainable: bool, features: int) -> float:
     """σ of the training-input noise for ``size`` training images of ``features`` frozen features:
-    ``train.input_noise`` × √(``scale_to`` / size) / √K up to ``train.input_noise_max_size`` images, 0 above, 0 for
-    fewer than ``train.input_noise_min_features`` features and for a trainable backbone (it sees images, not
-    features); K is the model's number of flows (``ensemble``, by default :func:`ensemble_for`).
-    The noise a flow needs falls as 1/√n with its data: measured on the cues, σ = 0.3 at 5k and
-    0.15 at 20k bring the tempered flows from 0.104 and 0.091 to 0.065 and 0.020 at no loss of information. At 50k the
-    noise follows the training length: after 20 epochs 0.094 costs 0.1 nats and overshoots into underconfidence, after
-    60 it keeps the calibration that longer training loses (0.080 → 0.022) for 0.05 of the 0.5 nats the 40 more
-    epochs gain (BENCHMARKS.md, "Cues version 3 and input noise", "Training the 50k models longer"). An ensemble
-    widens the posterior by its members' disagreement and needs less: two cues flows at 50k are overconfident without
-    noise (coverage gap −0.013), underconfident with 0.094 (+0.023) and calibrated with 0.047 (+0.003; BENCHMARKS.md,
-    "An ensemble of flows at 50k"). With the context network, 0.047 (σ/K) left one of two flow seeds outside the
-    calibration band (0.041) and 0.066 (σ/√K) kept both inside (0.027, 0.015) for 0.08–0.10 nats (BENCHMARKS.md,
-    "Less noise, two flows, two seeds"): σ/√K, measured at K = 2 only. On a few informative features the same noise
-    erases the signal instead: on the SBI problems' 2–10 inputs it took the classifier two-sample accuracy at 1k
+    ``train.input_noise`` × √(``scale_to`` / size) up to ``train.input_noise_max_size`` images, 0 above, 0 for fewer
+    than ``train.input_noise_min_features`` features and for a trainable backbone (it sees images, not features); the
+    same for one flow and for an ensemble's.
+    The noise a flow needs falls as 1/√n with its data: measured on the version-3 cues, σ = 0.3 at 5k and 0.15 at 20k
+    brought the tempered flows from 0.104 and 0.091 to 0.065 and 0.020 at no loss of information (BENCHMARKS.md, "Cues
+    version 3 and input noise", "Training the 50k models longer"). With the version-6 cues (the weather reader) the
+    coverage gap crosses zero near σ = 0.50 at 5k, 0.23 at 20k and 0.16–0.20 at 50k (two flows): 1/√n again, with
+    no room for the 1/√K that an ensemble of K flows had before (σ/√K was measured at K = 2 only, on the version-4
+    cues: BENCHMARKS.md, "Less noise, two flows, two seeds", "Cues version 6"). On a few informative features the same
+    noise erases the signal instead: on the SBI problems' 2–10 inputs it took the classifier two-sample accuracy at 1k
     simulations from 0.73–0.75 to 0.86–0.96 (BENCHMARKS.md, "The SBI problems with today's defaults"), hence the
     floor on the number of features."""
     _check_positive("size", size)
     _check_positive("features", features)
     if trainable or size > train_section.input_noise_max_size or features < train_section.input_noise_min_features:
         return 0.0
-    k = ensemble_for(train_section, size) if ensemble is None else ensemble
-    return float(train_section.input_noise) * math.sqrt(train_section.scale_to / size / k)
+    return float(train_section.input_noise) * math.sqrt(train_section.scale_to / size)
 
 
 def compile_for(train_section: TrainConfig, size: int, *, trainable: bool) -> bool:
@@ -209,7 +202,7 @@ def training_config(
                 clip_norm=t.clip_norm,
                 seed=seed,
                 balance=t.balance if balance is None else balance,
-                input_noise=input_noise_for(t, size, trainable=trainable, features=features, ensemble=ensemble),
+                input_noise=input_noise_for(t, size, trainable=trainable, features=features),
                 mirror=t.mirror,
                 compile=compile_for(t, size, trainable=trainable),
             ),

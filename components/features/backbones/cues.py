@@ -75,13 +75,21 @@ Version 5 adds the wet road by distance (18), from a small learned detector of f
   the shares by distance would read deposits to 3.0, against ~7 for the version-4 cues; ``benchmarks/bench_puddles.py``).
   Unlike the other cues it is learned: from the renderer's own road and wet masks (``scripts/train_wet_road.py``).
 
+Version 6 adds the weather reader (12), a small frozen convolutional network that guesses each parameter from the
+whole image (:mod:`components.features.backbones.weather_reader`), and retrains the wet-road detector on 100 000
+images instead of 7 500 (both on a GPU, once; their cards say how):
+
+- ``reader`` (12): per parameter θ_k, the reader's mean on the prior box's unit scale and its log standard deviation,
+  averaged over the image and its mirror. Learned from the renderer's weathers (``scripts/train_weather_reader.py``);
+  the flow downstream learns how far to trust each.
+
 Measured (BENCHMARKS.md, "Models that read the images"): on 50 000 training images the flow on the 241 version-2
 cues gains 6.2 nats where the 80 version-1 cues gain 4.9; the 32 version-3 cues add 0.2 nats (rain's daytime
 error 5.3 → 4.8). The 72 version-4 cues add 0.07–0.10 nats with one flow and read the daytime sun to 5.3–5.7° instead
 of 6.3–6.5°; with two flows 7.47–7.51 nats, calibrated on two seeds (BENCHMARKS.md, "The sky's thumbnail beside the
 cues"). The thumbnail's lower rows are left out: beside the cues they made the flow overconfident about night fog.
 
-Why. It is the interpretable end of the backbone comparison: a flow on these 363 numbers can only use
+Why. It is the interpretable end of the backbone comparison: a flow on these 375 numbers can only use
 what physics says is visible, so comparing it with the learned ``cnn`` and the raw ``tiny`` thumbnail
 shows how much a learned representation adds. The region split assumes a forward-looking camera with
 the horizon near mid-image (true for the simulators' pitch of ±2°).
@@ -105,6 +113,8 @@ import torch.nn.functional as F
 
 from components.features.backbones.base import Backbone
 from components.features.backbones.tiny import linear_to_lab
+from components.features.backbones.weather_reader import FEATURE_NAMES as _READER_NAMES
+from components.features.backbones.weather_reader import load_reader, reader_features
 from components.features.backbones.wet_road import FEATURE_NAMES as _WET_ROAD_NAMES
 from components.features.backbones.wet_road import load_detector, wet_road_features
 
@@ -164,6 +174,8 @@ def _names() -> tuple[str, ...]:
     names += [f"sky_lab_{ch}_{r}{c}" for ch in "Lab" for r in range(_SKY_ROWS) for c in range(_SKY_LATTICE)]
     # version 5: the wet road by distance (a frozen learned detector)
     names += list(_WET_ROAD_NAMES)
+    # version 6: the weather reader (a frozen learned network)
+    names += list(_READER_NAMES)
     return tuple(names)
 
 
@@ -175,7 +187,8 @@ def _mirror_partner(name: str) -> str:
     """The feature that ``name`` becomes when the image is mirrored left-right: grid column c ↔ 3 − c, sky thumbnail
     column c ↔ 7 − c, left ↔ right wall, edge-orientation bin k ↔ (8 − k) mod 8 (the slant changes sign), ╱ ↔ ╲ ridges;
     itself for every feature of a region symmetric about the vertical midline (rows, bands, the road, the sky,
-    whole-image statistics; the wet road's bands, whose detector is mirror-equivariant)."""
+    whole-image statistics; the wet road's bands, whose detector is mirror-equivariant; the reader's guesses, averaged
+    over the image and its mirror)."""
     if m := re.fullmatch(r"(grid_log_\w+?)(\d)(\d)", name):
         return f"{m[1]}{m[2]}{3 - int(m[3])}"
     if m := re.fullmatch(r"(sky_lab_\w_)(\d)(\d)", name):
@@ -394,14 +407,15 @@ def _orientation_histogram(v: torch.Tensor, bins: int = 8) -> torch.Tensor:
 
 
 class CuesBackbone(Backbone):
-    """Physical weather cues (363 features); frozen: no trained weights but the wet-road detector's. See the module
+    """Physical weather cues (375 features); frozen: no trained weights but the wet-road detector's and the reader's. See the module
     docstring."""
 
     name: ClassVar[str] = "cues"
     # 4.1: the sky's lattice converted to L*a*b* whole, as the tiny backbone converts it (version 4 sliced its rows
     # first: the same features but 1 ULP apart from the tiny's on some CPUs); cached features of "4" are recomputed.
     # 5: the wet road by distance (the detector's weights are in the fingerprint too)
-    version: ClassVar[str] = "5"
+    # 6: the weather reader, and the wet-road detector retrained on 100 000 images
+    version: ClassVar[str] = "6"
     dim: int = len(FEATURE_NAMES)
     trainable: bool = False
     input_size: tuple[int, int] = (128, 128)
@@ -411,11 +425,13 @@ class CuesBackbone(Backbone):
     def __init__(self) -> None:
         super().__init__()
         self.wet_road = load_detector()  # frozen, in eval mode; its weights checked against their card
+        self.reader = load_reader()  # likewise
 
     def train(self, mode: bool = True) -> CuesBackbone:
         """Modules' training mode; the wet-road detector stays in eval mode (its batch norm is frozen)."""
         super().train(mode)
         self.wet_road.eval()
+        self.reader.eval()
         return self
 
     def config(self) -> dict[str, Any]:
@@ -426,7 +442,7 @@ class CuesBackbone(Backbone):
         return MIRROR
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → cues ``(n, 363)`` float32 (:data:`FEATURE_NAMES`).
+        """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → cues ``(n, 375)`` float32 (:data:`FEATURE_NAMES`).
 
         Region and colour statistics use the 2×2 area-averaged 64×64 image (4× cheaper, same means);
         contrast, edges and the clipped/dark fractions use full resolution (thin streaks, lamps).
@@ -530,6 +546,7 @@ class CuesBackbone(Backbone):
         # the detector reads 128×128 rows (the image converted by area interpolation when of another size)
         x128 = x if tuple(x.shape[-2:]) == (128, 128) else F.interpolate(x, size=(128, 128), mode="area")
         feats.append(wet_road_features(self.wet_road, x128))
+        feats.append(reader_features(self.reader, x128))
         out = torch.cat(feats, dim=1)
         if out.shape[1] != self.dim:  # internal consistency of FEATURE_NAMES and the code above
             raise RuntimeError(f"cues: computed {out.shape[1]} features, FEATURE_NAMES has {self.dim}")

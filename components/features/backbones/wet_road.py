@@ -1,4 +1,4 @@
-"""The wet road by distance: a small frozen detector of flooded road pixels, for the ``cues`` (version 5).
+"""The wet road by distance: a small frozen detector of flooded road pixels, for the ``cues`` (from version 5).
 
 Why. Deposits flood a road pixel where the renderer's static puddle noise lies below a level set by
 ``precipitation_deposits`` (:mod:`components.simulate.procedural.reflections`), so the *wet share of the road* follows
@@ -25,9 +25,11 @@ chunks give these 18 columns to 1e-6, not to the bit; the features stage always 
 Training (``python scripts/train_wet_road.py``): images of the
 embedded renderer under weathers drawn from the uniform prior (the sun azimuth too), two per scene, labelled with the
 scene's road mask and its wet mask (the puddle weight above ½), from scene seeds that the dataset splits do not use;
-cross-entropy, AdamW with a one-cycle learning rate, every draw from the given seed. The weights and a card (data,
-seed, validation figures, sha256) are :data:`WEIGHTS` and :data:`CARD`; :func:`load_detector` checks the weights
-against the card.
+cross-entropy, AdamW with a one-cycle learning rate, every draw from the given seed. The shipped weights learned from
+100 000 images in 12 epochs on a GPU (cues version 6; version 5's from 7 500 in 10 on this CPU: a day-time pixel AUC of
+0.93 against 0.86, and wet-share correlations of 0.49–0.91 against 0.21–0.79 by band). The weights and a card (data,
+seed, machine, validation figures, sha256) are :data:`WEIGHTS` and :data:`CARD`; :func:`load_detector` checks the
+weights against the card.
 
 Used by :mod:`components.features.backbones.cues` (every stage but ``generate``, and the ``pidc`` CLI) and by
 ``scripts/train_wet_road.py``.
@@ -35,14 +37,13 @@ Used by :mod:`components.features.backbones.cues` (every stage but ``generate``,
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from components.core.files import sha256_file
+from components.features.backbones.frozen import load_frozen
 
 __all__ = [
     "BANDS",
@@ -131,29 +132,12 @@ def wet_road_features(net: WetRoadNet, x: torch.Tensor) -> torch.Tensor:
 
 
 def load_detector(weights: Path = WEIGHTS, card: Path = CARD) -> WetRoadNet:
-    """The frozen detector, in eval mode, its weights checked against the card's sha256.
-
-    Raises:
-        FileNotFoundError: the weights or the card are missing (train them: ``python scripts/train_wet_road.py``).
-        ValueError: the weights differ from the card's sha256, or do not fit :class:`WetRoadNet`.
-    """
-    for path in (weights, card):
-        if not path.is_file():
-            raise FileNotFoundError(
-                f"{path}: the wet-road detector of the cues is missing (train it: python scripts/train_wet_road.py)"
-            )
-    meta = json.loads(card.read_text())
-    digest = sha256_file(weights)
-    if digest != meta.get("sha256"):
-        raise ValueError(
-            f"{weights}: sha256 {digest[:16]}… differs from {card}'s {str(meta.get('sha256'))[:16]}… "
-            "(a modified or foreign file; retrain with python scripts/train_wet_road.py)"
-        )
-    net = WetRoadNet(int(meta.get("channels", CHANNELS)))
-    try:
-        net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
-    except (RuntimeError, KeyError) as e:
-        raise ValueError(f"{weights}: the weights do not fit the wet-road detector ({e})") from None
-    for p in net.parameters():
-        p.requires_grad_(False)
-    return net.eval()
+    """The frozen detector, in eval mode, its weights checked against the card's sha256
+    (:func:`components.features.backbones.frozen.load_frozen`: FileNotFoundError, ValueError)."""
+    return load_frozen(
+        lambda meta: WetRoadNet(int(meta.get("channels", CHANNELS))),
+        weights,
+        card,
+        "wet-road detector",
+        "scripts/train_wet_road.py",
+    )

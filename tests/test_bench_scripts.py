@@ -104,7 +104,7 @@ def test_scale_models_grammar() -> None:
     # the pipeline's settings: its flows, no input noise above train.input_noise_max_size, the fitted temperature
     assert (setting["ensemble"], setting["noise"], setting["temperature"]) == (params.train.flow.ensemble, 0.0, True)
     _, _, _, _, setting = _parse("cues-50000", 12, params)
-    assert setting["noise"] == pytest.approx(0.21 * (10000 / 50000 / params.train.flow.ensemble) ** 0.5)
+    assert setting["noise"] == pytest.approx(params.train.input_noise * (10000 / 50000) ** 0.5)  # one flow or two
     _, _, _, _, setting = _parse("cues-v4-100000-ens3-n0.05-t", 12, params)
     assert (setting["size"], setting["ensemble"], setting["noise"]) == (100000, 3, 0.05)
     assert _parse("hybrid-50000", 12, params) == ("image", 50000, 12, False, {"with_cues": True, "widths": WIDTHS})

@@ -76,7 +76,8 @@ def train_reader(
         mirror=True,
         device=device,
         log=log,
-        what="weather reader: training NLL",
+        name="weather reader",
+        metric="training NLL",
     )
 
 

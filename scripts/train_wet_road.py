@@ -141,7 +141,8 @@ def train_detector(
         lr=lr,
         device=device,
         log=log,
-        what="wet road detector: training cross-entropy",
+        name="wet road detector",
+        metric="training cross-entropy",
     )
 
 
@@ -159,7 +160,8 @@ def fit(
     mirror: bool = False,
     device: str = "cpu",
     log=print,
-    what: str = "training loss",
+    name: str = "network",
+    metric: str = "training loss",
 ) -> torch.nn.Module:
     """The training loop of the cue networks: ``loss_fn(net(x), targets[batch])`` minimized by AdamW with a one-cycle
     learning rate over ``epochs`` passes in a random order; images ``(N, 128, 128, 3)`` uint8 kept once on ``device``
@@ -187,9 +189,7 @@ def fit(
             opt.step()
             sched.step()
             total += loss.detach() * len(idx)
-        log(
-            f"{what.split(':')[0]}: epoch {epoch + 1} of {epochs}, {what.split(': ')[-1]} {float(total) / len(images):.4f}"
-        )
+        log(f"{name}: epoch {epoch + 1} of {epochs}, {metric} {float(total) / len(images):.4f}")
     return net.cpu().eval()
 
 

@@ -84,14 +84,14 @@ def _render_rows(job: tuple[int, int, np.ndarray, np.ndarray]) -> np.ndarray:
     )
 
 
-def render_split(params, name: str, size: int, workers: int) -> tuple[np.ndarray, np.ndarray]:
+def render_split(params, name: str, size: int, workers: int, seed: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The first ``size`` images ``(size, H, W, 3)`` uint8 and θ ``(size, 6)`` of split ``name``'s plan (the
-    simulator's size of ``params``)."""
+    simulator's size of ``params``) under root seed ``seed`` (default: ``params.seed``, the pipeline's images)."""
     sim = ProceduralSimulator(params.simulator.height, params.simulator.width)
     plan = dataset.plan_split(
         name,
         size,
-        seed=params.seed,
+        seed=params.seed if seed is None else seed,
         box=params.box,
         images_per_scene=params.data.images_per_scene,
         shard_size=params.data.shard_size,

@@ -1,6 +1,7 @@
 """The ablation benchmarks' own claims: ``bench_levers`` and ``bench_scale`` read their settings strictly, and
 ``bench_scale`` renders exactly the pipeline's images (the same plan and renderer as the ``generate`` stage), so that
-its figures compare with the pipeline's on the same images."""
+its figures compare with the pipeline's on the same images; ``bench_splits`` renders other scenes and weathers under
+another root seed, the same ones every time."""
 
 from __future__ import annotations
 
@@ -17,7 +18,9 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.bench_levers import mirror_map, parse_setting, tiny_columns  # noqa: E402
 from benchmarks.bench_puddles import LEVELS, ideal_errors  # noqa: E402
 from benchmarks.bench_scale import SMALL_WIDTHS, WIDTHS, FullResolutionCNN, _parse, render_split  # noqa: E402
+from benchmarks.bench_splits import fresh_features, summarize  # noqa: E402
 from components.core.config import load_params  # noqa: E402
+from components.core.weather import PREDICTED  # noqa: E402
 from components.features.backbones import get_backbone  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 from components.simulate.procedural import ProceduralSimulator  # noqa: E402
@@ -163,3 +166,42 @@ def test_puddles_ideal_reader_on_a_known_problem() -> None:
     # two independent bands of the same spread: the error shrinks by √2
     two = curve + np.random.default_rng(1).normal(0.0, sigma, (400, 2, levels))
     assert abs(np.median(ideal_errors(two, [0, 1])[:, 40:-40]) - 0.674 * sigma * 100 / np.sqrt(2)) < 0.25
+
+
+def test_splits_fresh_split_is_another_plan_the_same_every_time(tmp_path: Path) -> None:
+    """A fresh split (root seed + 1) holds other weathers and images than the pipeline's test split, the same ones on
+    every call, and its features come back from the cache."""
+    params = load_params(ROOT / "params.yaml")
+    images, theta = render_split(params, "test", 8, workers=1)
+    fresh_images, fresh_theta = render_split(params, "test", 8, workers=1, seed=params.seed + 1)
+    assert not np.allclose(theta, fresh_theta) and (images != fresh_images).mean() > 0.5
+    again_images, again_theta = render_split(params, "test", 8, workers=1, seed=params.seed + 1)
+    np.testing.assert_array_equal(fresh_images, again_images)
+    np.testing.assert_array_equal(fresh_theta, again_theta)
+    backbone = get_backbone("tiny").eval()
+    x, th = fresh_features(params, backbone, params.seed + 1, 8, 1, tmp_path)
+    np.testing.assert_array_equal(x, backbone.extract(fresh_images))
+    np.testing.assert_array_equal(th, fresh_theta)
+    (kept,) = tmp_path.glob("tiny-*.npz")
+    assert kept.name.endswith(f"-{params.seed + 1}-8.npz")
+    x2, th2 = fresh_features(params, backbone, params.seed + 1, 8, 1, tmp_path)
+    np.testing.assert_array_equal(x2, x)
+
+
+def test_splits_summary_is_the_mean_and_spread_over_splits() -> None:
+    def row(v: float) -> dict:
+        block = dict.fromkeys(PREDICTED, v)
+        return {
+            "info_gain_nats": v,
+            "test_nll": -v,
+            "calibration_error": v / 10,
+            "day_median_abs_error": block,
+            "night_coverage68": block,
+            "day_coverage68": block,
+        }
+
+    out = summarize([row(1.0), row(2.0), row(6.0)])
+    assert out["info_gain_nats"]["mean"] == pytest.approx(3.0)
+    assert out["info_gain_nats"]["sd"] == pytest.approx(np.std([1.0, 2.0, 6.0], ddof=1))
+    assert out["night_coverage68"]["wind_intensity"]["mean"] == pytest.approx(3.0)
+    assert summarize([row(1.0)])["test_nll"] == {"mean": -1.0, "sd": None}

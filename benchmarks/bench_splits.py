@@ -40,6 +40,7 @@ from benchmarks.bench_levers import score  # noqa: E402
 from benchmarks.bench_scale import render_split  # noqa: E402
 from benchmarks.machine import machine_info  # noqa: E402
 from components.core.config import load_params  # noqa: E402
+from components.core.files import atomic_path  # noqa: E402
 from components.core.weather import PREDICTED  # noqa: E402
 from components.features import cache  # noqa: E402
 from components.features.backbones import get_backbone  # noqa: E402
@@ -62,10 +63,8 @@ def fresh_features(params, backbone, seed: int, size: int, workers: int, folder:
     images, theta = render_split(params, "test", size, workers, seed=seed)
     x = backbone.extract(images, batch_size=params.backbones.batch_size)
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, x=x, theta=theta)
-        tmp.replace(path)
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.savez(f, x=x, theta=theta)
     return x, theta
 
 
@@ -105,7 +104,7 @@ def main(argv: list[str] | None = None) -> None:
     if a.splits < 1:
         raise SystemExit(f"--splits must be at least 1, got {a.splits}")
     params = load_params(a.root / "params.yaml")
-    size = a.size or params.data.splits["test"]
+    size = params.data.splits["test"] if a.size is None else a.size
     if size < 2:
         raise SystemExit(f"--size must be at least 2 images, got {size}")
     model, header = load_npe(a.model)

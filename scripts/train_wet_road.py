@@ -37,7 +37,7 @@ import torch.nn.functional as F  # noqa: E402
 
 from components.core import seeding  # noqa: E402
 from components.core.config import load_params  # noqa: E402
-from components.core.files import sha256_file  # noqa: E402
+from components.core.files import atomic_path, sha256_file  # noqa: E402
 from components.core.weather import Box, sample_azimuth, weather_from_theta  # noqa: E402
 from components.features.backbones import wet_road  # noqa: E402
 from components.simulate.procedural import ProceduralSimulator  # noqa: E402
@@ -100,10 +100,8 @@ def render_training_set(
     out = np.concatenate([d[0] for d in done])
     labels = np.concatenate([d[1] for d in done])
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, images=out, labels=labels, theta=theta.astype(np.float32))
-        tmp.replace(path)
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.savez(f, images=out, labels=labels, theta=theta.astype(np.float32))
     return out, labels, theta.astype(np.float32)
 
 

@@ -105,7 +105,9 @@ def _scale(n_train: int) -> float:
 
 def _steps(n: int, f: Any, t: Any) -> tuple[Any, Any]:
     s = _scale(n)
-    return f, replace(t, epochs=math.ceil(t.epochs * s), patience=math.ceil(t.patience * s))
+    return f, replace(
+        t, epochs=math.ceil(t.epochs * s), patience=None if t.patience is None else math.ceil(t.patience * s)
+    )
 
 
 def _batch(n: int, f: Any, t: Any) -> tuple[Any, Any]:
@@ -132,7 +134,7 @@ def _wd(n: int, f: Any, t: Any) -> tuple[Any, Any]:
 
 
 def _patience(n: int, f: Any, t: Any) -> tuple[Any, Any]:
-    return f, replace(t, epochs=max(t.epochs, 200), patience=max(t.patience, 20))
+    return f, replace(t, epochs=max(t.epochs, 200), patience=None if t.patience is None else max(t.patience, 20))
 
 
 def _sbi_train(n: int, f: Any, t: Any) -> tuple[Any, Any]:

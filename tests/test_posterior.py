@@ -504,6 +504,24 @@ def test_training_history_schedule_early_stopping_and_best_weights(tmp_path: obj
     assert all(torch.equal(a, b) for a, b in zip(m.state_dict().values(), m2.state_dict().values(), strict=False))
 
 
+def test_without_patience_every_epoch_runs_and_the_best_weights_are_kept() -> None:
+    """patience=None: the overfitting run of the test above goes on to the last epoch, and the model still ends with
+    the weights of its best validation epoch (not the last one's)."""
+    x, th = _data(96, 1)
+    xv, thv = _data(400, 2)
+    m = _model()
+    cfg = TrainingConfig(epochs=20, batch_size=32, lr=1e-2, patience=None, seed=1)
+    hist = train(m, (x, th), (xv, thv), cfg, progress=False)
+    assert len(hist.val_loss) == cfg.epochs and not hist.stopped_early
+    assert hist.best_epoch < cfg.epochs - 1 and hist.val_loss[-1] > hist.best_val_loss  # it overfits at the end
+    with torch.no_grad():
+        again = npe_loss(m, torch.tensor(thv), torch.tensor(xv))
+    assert float(again.loss) == pytest.approx(hist.best_val_loss, rel=1e-4)
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match=r"TrainingConfig.patience must be an integer >= 1 or None"):
+            TrainingConfig(patience=bad)
+
+
 def test_killed_run_resumes_to_the_same_result(tmp_path: object) -> None:
     x, th = _data(256, 3)
     xv, thv = _data(128, 4)

@@ -194,7 +194,9 @@ class TrainConfig(_Section):
     plateau_factor: Annotated[float, Field(gt=0, lt=1)]
     plateau_patience: PositiveInt
     #: early stopping: epochs without improvement of the validation loss
-    patience: PositiveInt
+    #: early stopping: stop after this many epochs without improvement of the validation loss (× s below scale_to);
+    #: null: none, every epoch of the schedule runs (the weights of the best validation epoch are kept either way)
+    patience: PositiveInt | None
     #: the improvement of the validation loss that counts (nats)
     min_delta: Annotated[float, Field(ge=0)]
     clip_norm: Annotated[float, Field(gt=0)] | None

@@ -132,8 +132,11 @@ def epochs_for(train_section: TrainConfig, size: int, *, trainable: bool) -> int
     return max(1, min(math.ceil(t.epochs * s), math.ceil(t.sample_budget / size)))
 
 
-def patience_for(train_section: TrainConfig, size: int) -> int:
-    """Early stopping's patience for ``size`` training images: ``⌈patience·s⌉`` (:func:`small_data_scale`)."""
+def patience_for(train_section: TrainConfig, size: int) -> int | None:
+    """Early stopping's patience for ``size`` training images: ``⌈patience·s⌉`` (:func:`small_data_scale`); ``None``
+    (``train.patience: null``): no early stopping."""
+    if train_section.patience is None:
+        return None
     return math.ceil(train_section.patience * small_data_scale(train_section, size))
 
 

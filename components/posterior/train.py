@@ -58,7 +58,8 @@ class TrainingConfig:
             after ``plateau_patience`` epochs without improvement, floored at ``min_lr``) or ``"constant"``.
         min_lr: the schedule's floor.
         plateau_factor, plateau_patience: the ``"plateau"`` schedule's settings.
-        patience: early stopping: stop after this many epochs without a validation loss below best − ``min_delta``.
+        patience: early stopping: stop after this many epochs without a validation loss below best − ``min_delta``;
+            ``None``: every epoch runs. Either way the model ends with the weights of its best validation epoch.
         min_delta: the improvement that counts (nats).
         clip_norm: the gradients' global L2 norm is clipped to this; ``None`` = no clipping.
         seed: the root of the training's random draws (shuffling, global-RNG use in the model).
@@ -88,7 +89,7 @@ class TrainingConfig:
     min_lr: float = 1e-6
     plateau_factor: float = 0.5
     plateau_patience: int = 5
-    patience: int = 20
+    patience: int | None = 20
     min_delta: float = 0.0
     clip_norm: float | None = 5.0
     seed: int = 0
@@ -100,8 +101,11 @@ class TrainingConfig:
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "patience", "plateau_patience"):
             v = getattr(self, name)
+            if name == "patience" and v is None:
+                continue
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"TrainingConfig.{name} must be an integer >= 1, got {v!r}")
+                what = "an integer >= 1 or None (no early stopping)" if name == "patience" else "an integer >= 1"
+                raise ValueError(f"TrainingConfig.{name} must be {what}, got {v!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"TrainingConfig.seed must be an integer >= 0, got {self.seed!r}")
         for name, low_ok in (
@@ -519,7 +523,7 @@ def train(
                 improved,
             )
             history.records.append(record)
-            stop = bad_epochs >= config.patience and epoch + 1 < config.epochs
+            stop = config.patience is not None and bad_epochs >= config.patience and epoch + 1 < config.epochs
             history.stopped_early = stop
             write(epoch, finished=False)
             if callback is not None:

@@ -193,7 +193,6 @@ class TrainConfig(_Section):
     #: the plateau schedule: lr × plateau_factor after plateau_patience epochs without improvement
     plateau_factor: Annotated[float, Field(gt=0, lt=1)]
     plateau_patience: PositiveInt
-    #: early stopping: epochs without improvement of the validation loss
     #: early stopping: stop after this many epochs without improvement of the validation loss (× s below scale_to);
     #: null: none, every epoch of the schedule runs (the weights of the best validation epoch are kept either way)
     patience: PositiveInt | None

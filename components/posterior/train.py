@@ -99,13 +99,13 @@ class TrainingConfig:
     compile: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("epochs", "batch_size", "patience", "plateau_patience"):
+        for name in ("epochs", "batch_size", "plateau_patience"):
             v = getattr(self, name)
-            if name == "patience" and v is None:
-                continue
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                what = "an integer >= 1 or None (no early stopping)" if name == "patience" else "an integer >= 1"
-                raise ValueError(f"TrainingConfig.{name} must be {what}, got {v!r}")
+                raise ValueError(f"TrainingConfig.{name} must be an integer >= 1, got {v!r}")
+        p = self.patience
+        if p is not None and (isinstance(p, bool) or not isinstance(p, int) or p < 1):
+            raise ValueError(f"TrainingConfig.patience must be an integer >= 1 or None (no early stopping), got {p!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"TrainingConfig.seed must be an integer >= 0, got {self.seed!r}")
         for name, low_ok in (

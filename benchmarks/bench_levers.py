@@ -16,7 +16,8 @@ Levers (``--setting NAME``, several allowed):
 * ``cues-v4-<n>``: the 345 cues of version 4 (the first 345 columns: version 3 and the sky's thumbnail, the
   ``tiny`` cache's columns of ``+sky3`` below to the bit);
 * ``cues-v5-<n>``: the 363 cues of version 5 (the first 363 columns: version 4 and the wet road by distance);
-* ``cues-v6-<n>``: all 375 cues of version 6 (the cache of today's ``cues``: version 5 and the weather reader);
+* ``cues-v6-<n>``: the 375 cues of version 6 (the first 375 columns: version 5 and the weather reader);
+* ``cues-v7-<n>``: all 377 cues of version 7 (the cache of today's ``cues``: version 6 and the reader's sun head);
 * ``cues-v3+tiny-<n>``: those joined by the 256 features of the ``tiny`` backbone's cache (its 8×8 L*a*b* thumbnail
   and per-cell contrast: where the light falls, finer than the cues' 4×4 grid; ``dvc repro features@tiny``);
 * ``cues-v3+sky<r>-<n>``: the cues joined by the L*a*b* of the thumbnail's upper ``r`` lattice rows only (24·r
@@ -74,11 +75,11 @@ from components.posterior.temperature import calibrate_post_hoc  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 
 _SETTING = re.compile(
-    r"^cues-(v1|v2|v3|v4|v5|v6)(\+tiny|\+sky[1-8])?-(\d+)(?:-ens(\d+))?(?:-c(0|\d+(?:x\d+)*))?(?:-e(\d+))?(?:-lr(\d+(?:\.\d+)?(?:e-?\d+)?))?"
+    r"^cues-(v1|v2|v3|v4|v5|v6|v7)(\+tiny|\+sky[1-8])?-(\d+)(?:-ens(\d+))?(?:-c(0|\d+(?:x\d+)*))?(?:-e(\d+))?(?:-lr(\d+(?:\.\d+)?(?:e-?\d+)?))?"
     r"(?:-wd(\d+(?:\.\d+)?(?:e-?\d+)?))?(?:-n([0-9.]+))?(-m)?(-t)?$"
 )
 #: the leading columns of today's cues cache that each cue version computed
-COLUMNS = {"v1": 80, "v2": 241, "v3": 273, "v4": 345, "v5": 363, "v6": None}
+COLUMNS = {"v1": 80, "v2": 241, "v3": 273, "v4": 345, "v5": 363, "v6": 375, "v7": None}
 
 
 def parse_setting(name: str) -> dict:
@@ -89,7 +90,7 @@ def parse_setting(name: str) -> dict:
     if not m:
         raise ValueError(
             f"setting {name!r}: expected "
-            "cues-(v1|v2|v3|v4|v5|v6)[+tiny|+sky<rows>]-<size>[-ens<k>][-c<w>x<w>…|-c0][-e<epochs>][-lr<lr>][-wd<decay>][-n<σ>][-m][-t]"
+            "cues-(v1|v2|v3|v4|v5|v6|v7)[+tiny|+sky<rows>]-<size>[-ens<k>][-c<w>x<w>…|-c0][-e<epochs>][-lr<lr>][-wd<decay>][-n<σ>][-m][-t]"
         )
     v, tiny, size, ens, ctx, ep, lr, wd, noise, mirror, temp = m.groups()
     return {

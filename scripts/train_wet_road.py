@@ -271,10 +271,18 @@ def machine(device: str) -> str:
 
 
 def save(
-    net: torch.nn.Module, a: argparse.Namespace, network: dict, figures: dict, t0: float, argv, script: str
+    net: torch.nn.Module,
+    a: argparse.Namespace,
+    network: dict,
+    figures: dict,
+    t0: float,
+    argv,
+    script: str,
+    data: dict | None = None,
 ) -> None:
     """Write the weights to ``a.out`` and their card beside them: ``network``'s fields (what the network is), the
-    data, seed, machine, ``figures`` (validation), the seconds since ``t0``, the command (``script`` and ``argv``) and the weights' sha256."""
+    data (``data``, else the scene :data:`STREAMS`), seed, machine, ``figures`` (validation), the seconds since ``t0``,
+    the command (``script`` and ``argv``) and the weights' sha256."""
     a.out.parent.mkdir(parents=True, exist_ok=True)
     torch.save(net.state_dict(), a.out)
     card = {
@@ -285,7 +293,7 @@ def save(
         "batch_size": a.batch_size,
         "lr": a.lr,
         "seed": a.seed,
-        "streams": list(STREAMS),
+        **({"data": data} if data is not None else {"streams": list(STREAMS)}),
         "validation": figures,
         "torch": torch.__version__,
         "machine": machine(a.device),

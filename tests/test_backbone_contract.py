@@ -27,9 +27,9 @@ from components.features.backbones import EMBEDDED, PRETRAINED, Backbone, availa
 
 SEED = 2026
 N = 6
-#: the documented feature sizes: cues 375, tiny 4·grid² (grid 8), cnn 64 by default; the pretrained ones read theirs
+#: the documented feature sizes: cues 377, tiny 4·grid² (grid 8), cnn 64 by default; the pretrained ones read theirs
 #: from the checkpoint's config (tiny checkpoints of conftest: ResNet hidden_sizes[-1] = 16, ViT hidden_size = 32)
-DIMS = {"cues": 375, "tiny": 256, "cnn": 64, "resnet50": 16, "dinov2": 32, "clip": 32}
+DIMS = {"cues": 377, "tiny": 256, "cnn": 64, "resnet50": 16, "dinov2": 32, "clip": 32}
 #: batch invariance tolerance: batched matmuls/convolutions may sum in another order for another batch size
 #: (float32 rounding, ~1e-7 relative per operation, accumulated over a few layers), so features agree to 1e-5
 #: relative to the feature scale, not bit for bit (measured: at most 6e-7, cnn one image at a time)
@@ -156,12 +156,14 @@ def test_fingerprint_changes_with_weights_options_and_version(
     base = _build(name, **_options(name, roots))
     variant = _variant(name, roots)
     if variant is None:
-        # `cues` has no options; its only weights are the frozen wet-road detector's and weather reader's (wet_road.pt,
-        # weather_reader.pt, checked against their cards): the fingerprint covers them, is stable across builds (test
-        # above) and changes with the version (below).
-        assert set(base.state_dict()) == {f"wet_road.{k}" for k in base.wet_road.state_dict()} | {
-            f"reader.{k}" for k in base.reader.state_dict()
-        }
+        # `cues` has no options; its only weights are the frozen wet-road detector's, the weather reader's and its sun
+        # head's (wet_road.pt, weather_reader.pt, weather_reader_sun.pt, checked against their cards): the fingerprint
+        # covers them, is stable across builds (test above) and changes with the version (below).
+        assert set(base.state_dict()) == (
+            {f"wet_road.{k}" for k in base.wet_road.state_dict()}
+            | {f"reader.{k}" for k in base.reader.state_dict()}
+            | {f"sun_head.{k}" for k in base.sun_head.state_dict()}
+        )
         assert not base.config().keys() - {"input_size"}
     else:
         other = _build(name, **variant)

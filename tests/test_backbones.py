@@ -155,7 +155,7 @@ def test_single_image_is_a_batch_of_one(textures: np.ndarray) -> None:
 # -- cues -----------------------------------------------------------------------------------------------
 def test_cues_names_match_dim() -> None:
     b = get_backbone("cues")
-    assert b.dim == len(FEATURE_NAMES) == len(set(FEATURE_NAMES)) == 375
+    assert b.dim == len(FEATURE_NAMES) == len(set(FEATURE_NAMES)) == 377
 
 
 def test_cues_mirror_symmetry(textures: np.ndarray) -> None:
@@ -278,7 +278,7 @@ def test_mirror_inputs_flip_a_trainable_backbones_images_and_refuse_what_cannot_
     np.testing.assert_array_equal(cnn.mirror_inputs(x).numpy(), mirrored.numpy())
     with pytest.raises(ValueError, match="expects model inputs"):
         cnn.mirror_inputs(x.flatten(1))
-    with pytest.raises(ValueError, match=r"expects features \(n, 375\)"):
+    with pytest.raises(ValueError, match=r"expects features \(n, 377\)"):
         get_backbone("cues").mirror_inputs(torch.zeros(2, 7))
 
     class Opaque(Backbone):  # frozen features with no known symmetry (as a pretrained network's)

@@ -51,7 +51,7 @@ def test_levers_settings_grammar() -> None:
     tuned = parse_setting("cues-v3-50000-e48-lr2e-3-wd0.001-n0.094-t")
     assert (tuned["epochs"], tuned["lr"], tuned["weight_decay"], tuned["noise"]) == (48, 2e-3, 1e-3, 0.094)
     bad_names = (
-        "cues-v7-5000",
+        "cues-v8-5000",
         "cues-v3+sky9-5000",
         "cues-v3+sky-5000",
         "cues-v3-tiny-5000",
@@ -77,7 +77,7 @@ def test_levers_mirror_map_is_the_features_of_the_mirrored_images() -> None:
         return torch.from_numpy(np.concatenate([get_backbone(b).extract(x) for b in ("cues", "tiny")], axis=1))
 
     every = tiny_columns(parse_setting("cues-v3+tiny-5000"))
-    np.testing.assert_allclose(mirror_map("v6", every)(joined(images)), joined(mirrored), rtol=1e-3, atol=2e-3)
+    np.testing.assert_allclose(mirror_map("v7", every)(joined(images)), joined(mirrored), rtol=1e-3, atol=2e-3)
     sky = tiny_columns(parse_setting("cues-v3+sky3-5000"))  # the L*a*b* of the upper three lattice rows
     assert len(sky) == 72
 
@@ -96,6 +96,8 @@ def test_levers_mirror_map_is_the_features_of_the_mirrored_images() -> None:
     assert torch.equal(mirror_map("v5", None)(v5)[:, 345:], v5[:, 345:])
     v6 = torch.arange(375.0)[None]  # version 6 adds the reader's guesses, each its own mirror image
     assert torch.equal(mirror_map("v6", None)(v6)[:, 345:], v6[:, 345:])
+    v7 = torch.arange(377.0)[None]  # version 7 adds the sun head's guess, its own mirror image
+    assert torch.equal(mirror_map("v7", None)(v7)[:, 345:], v7[:, 345:])
     v1 = torch.arange(80.0)[None]  # the version-1 columns mirror among themselves (edge orientations)
     assert sorted(mirror_map("v1", None)(v1)[0].tolist()) == v1[0].tolist()
 

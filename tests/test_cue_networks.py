@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from components.core import seeding
+from components.core.config import load_params
 from components.core.files import sha256_file
 from components.core.weather import SHORT_NAMES, Box
 from components.features.backbones import weather_reader as wr
@@ -218,6 +219,99 @@ def test_reader_training_script_writes_weights_its_card_accepts(tmp_path: Path) 
     for bad, message in (
         (["--workers", "0"], "--workers must be at least 1, got 0"),
         (["--lr", "0"], "--lr must be positive"),
+    ):
+        done = subprocess.run([*cmd[:-1], *bad], cwd=ROOT, capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2 and message in done.stderr, done.stderr
+
+
+def test_sun_head_shares_the_convolutions_and_is_mirror_invariant_for_any_weights() -> None:
+    """With the sun head the reader's 12 features are unchanged (the convolutions run once for both heads) and two
+    more follow, mirror-invariant by construction."""
+    torch.manual_seed(0)
+    net = wr.WeatherReader().eval()
+    for p in net.parameters():
+        p.data.normal_(0.0, 0.3)
+    sun = wr.SunHead(wr.WIDTHS[-1] * 16, (8, 4)).eval()
+    x = torch.rand(3, 3, 128, 128)
+    with torch.no_grad():
+        f, g, alone = (
+            wr.reader_features(net, x, sun),
+            wr.reader_features(net, x.flip(-1), sun),
+            wr.reader_features(net, x),
+        )
+        direct = sun(net.features(x).flatten(1)).flatten(1)
+        mirrored = sun(net.features(x.flip(-1)).flatten(1)).flatten(1)
+    assert f.shape == (3, len(wr.FEATURE_NAMES) + len(wr.SUN_FEATURE_NAMES)) == (3, 14)
+    torch.testing.assert_close(f[:, :12], alone, rtol=0, atol=0)
+    torch.testing.assert_close(f[:, 12:], 0.5 * (direct + mirrored), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(g, f, rtol=1e-5, atol=1e-5)
+
+
+def test_shipped_sun_head_reads_the_sun_higher_as_it_rises() -> None:
+    """In four clear daylight scenes the shipped sun head's guess rises with the sun's altitude (10°, 30°, 50°, 70°),
+    off by less than 12° on average over the 16 images; its card names the shipped reader."""
+    net, sun = wr.load_reader(), wr.load_sun_head()
+    card = json.loads(wr.SUN_CARD.read_text())
+    assert card["sha256"] == sha256_file(wr.SUN_WEIGHTS)
+    assert card["reader_sha256"] == json.loads(wr.CARD.read_text())["sha256"]
+    box, sim, levels = Box.full(), ProceduralSimulator(128, 128), np.array([10.0, 30.0, 50.0, 70.0])
+    errors = []
+    for i in range(4):
+        scene = seeding.derive_seed(SEED, "test", "sun_head", i)
+        weathers = [{**CLEAR, "precipitation_deposits": 0.0, "sun_altitude_angle": s} for s in levels]
+        images = np.stack([sim.render(w, scene) for w in weathers])
+        with torch.no_grad():
+            f = wr.reader_features(net, torch.from_numpy(images).permute(0, 3, 1, 2).float() / 255.0, sun)
+        guess = box.low[3] + f[:, 12].numpy() * (box.high[3] - box.low[3])
+        assert np.all(np.diff(guess) > 0), (scene, guess)
+        errors.append(np.abs(guess - levels))
+    assert np.mean(errors) < 12.0, np.round(errors, 1)
+
+
+def test_sun_head_loader_refuses_missing_modified_and_foreign_heads(tmp_path: Path) -> None:
+    """Missing or modified weights are refused as for every frozen network; a head whose card names another reader is
+    refused too (it would read convolutions it never saw)."""
+    with pytest.raises(FileNotFoundError, match="train_sun_head.py"):
+        wr.load_sun_head(tmp_path / "none.pt", tmp_path / "none.json")
+    weights, card = tmp_path / wr.SUN_WEIGHTS.name, tmp_path / wr.SUN_CARD.name
+    shutil.copy(wr.SUN_WEIGHTS, weights)
+    shutil.copy(wr.SUN_CARD, card)
+    wr.load_sun_head(weights, card)
+    meta = json.loads(card.read_text())
+    card.write_text(json.dumps({**meta, "reader_sha256": "0" * 64}))
+    with pytest.raises(ValueError, match="trained on the reader 0000"):
+        wr.load_sun_head(weights, card)
+    card.write_text(json.dumps(meta))
+    state = torch.load(weights, weights_only=True)
+    state["net.4.bias"] = state["net.4.bias"] + 1.0
+    torch.save(state, weights)
+    with pytest.raises(ValueError, match="differs from"):
+        wr.load_sun_head(weights, card)
+
+
+def test_sun_head_training_script_writes_weights_its_card_accepts(tmp_path: Path) -> None:
+    """A tiny run of scripts/train_sun_head.py: weights and a card that load_sun_head accepts, the same weights when
+    run again with the same seeds (once from its cache); bad arguments, the pipeline's own seed among them, are
+    refused by name."""
+    out = tmp_path / "a" / "weather_reader_sun.pt"
+    cmd = [sys.executable, str(ROOT / "scripts" / "train_sun_head.py"), "--images", "16", "--validation", "8"]
+    cmd += ["--epochs", "2", "--batch-size", "8", "--root-seed", "11", "--seed", "7", "--threads", "1", "--hidden", "8"]
+    cmd += ["--cache", str(tmp_path / "cache"), "--out"]
+    for target in (out, tmp_path / "b" / "weather_reader_sun.pt"):
+        done = subprocess.run([*cmd, str(target)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr[-2000:]
+    assert len(list((tmp_path / "cache").iterdir())) == 2  # the second run read the maps back
+    card = json.loads(out.with_suffix(".json").read_text())
+    assert (card["training_images"], card["epochs"], card["seed"], card["hidden"]) == (16, 2, 7, [8])
+    assert card["data"]["plans"] == {"train": 11, "val": 12} and 1 <= card["best_epoch"] <= 2
+    assert set(card["validation"]) == {"sun_head", "reader"}
+    assert card["sha256"] == json.loads((tmp_path / "b" / "weather_reader_sun.json").read_text())["sha256"]
+    wr.load_sun_head(out, out.with_suffix(".json"))
+    seed = load_params(ROOT / "params.yaml").seed
+    for bad, message in (
+        (["--root-seed", str(seed)], "its plans would be the pipeline's own images"),
+        (["--hidden", "0"], "--hidden must be positive integers"),
+        (["--hidden", "a"], "--hidden must be comma-separated integers"),
     ):
         done = subprocess.run([*cmd[:-1], *bad], cwd=ROOT, capture_output=True, text=True, timeout=60)
         assert done.returncode == 2 and message in done.stderr, done.stderr

@@ -206,7 +206,7 @@ class TrainConfig(_Section):
     #: (components/posterior/settings.py); 0 = none
     input_noise: Annotated[float, Field(ge=0)]
     input_noise_max_size: PositiveInt
-    #: no input noise for a model of fewer input features: noise regularizes many redundant features (cues 375, tiny
+    #: no input noise for a model of fewer input features: noise regularizes many redundant features (cues 377, tiny
     #: 256) and erases the signal of a few informative ones (the SBI problems' 2–10)
     input_noise_min_features: PositiveInt
     #: train on each input or its mirror image's with probability ½ (a left-right mirror leaves the weather and the

@@ -5,7 +5,7 @@ Every backbone has a name; :func:`get_backbone` builds one with its options:
 ============ ========= ====== ======================================================================
 name         trainable dim    what it sees
 ============ ========= ====== ======================================================================
-``cues``     no        375    interpretable physical weather cues (haze, contrast vs row, sky, streaks, wet road, ...)
+``cues``     no        377    interpretable physical weather cues (haze, contrast vs row, sky, streaks, wet road, ...)
 ``tiny``     no        4·g²   L*a*b* ``g × g`` thumbnail + per-cell contrast (Torralba 2008), g = 8
 ``cnn``      yes       64     small CNN on 64×64, trained jointly with the flow (NPE embedding)
 ``resnet50`` no        2048   ResNet-50, pooled (needs weights; paper profile)

@@ -83,13 +83,19 @@ images instead of 7 500 (both on a GPU, once; their cards say how):
   averaged over the image and its mirror. Learned from the renderer's weathers (``scripts/train_weather_reader.py``);
   the flow downstream learns how far to trust each.
 
+Version 7 adds the reader's sun head (2): a second, wider head on the reader's frozen convolutions that reads only the
+sun's altitude (its mean on the unit scale and log standard deviation, averaged over the image and its mirror),
+trained on the CPU from 100 000 further images (``scripts/train_sun_head.py``; BENCHMARKS.md, "Cues version 7"). The
+reader's own head shares its hidden units among the six parameters and reads the daytime sun to ~4°; the sun head to
+~3.5°.
+
 Measured (BENCHMARKS.md, "Models that read the images"): on 50 000 training images the flow on the 241 version-2
 cues gains 6.2 nats where the 80 version-1 cues gain 4.9; the 32 version-3 cues add 0.2 nats (rain's daytime
 error 5.3 → 4.8). The 72 version-4 cues add 0.07–0.10 nats with one flow and read the daytime sun to 5.3–5.7° instead
 of 6.3–6.5°; with two flows 7.47–7.51 nats, calibrated on two seeds (BENCHMARKS.md, "The sky's thumbnail beside the
 cues"). The thumbnail's lower rows are left out: beside the cues they made the flow overconfident about night fog.
 
-Why. It is the interpretable end of the backbone comparison: a flow on these 375 numbers can only use
+Why. It is the interpretable end of the backbone comparison: a flow on these 377 numbers can only use
 what physics says is visible, so comparing it with the learned ``cnn`` and the raw ``tiny`` thumbnail
 shows how much a learned representation adds. The region split assumes a forward-looking camera with
 the horizon near mid-image (true for the simulators' pitch of ±2°).
@@ -114,7 +120,8 @@ import torch.nn.functional as F
 from components.features.backbones.base import Backbone
 from components.features.backbones.tiny import linear_to_lab
 from components.features.backbones.weather_reader import FEATURE_NAMES as _READER_NAMES
-from components.features.backbones.weather_reader import load_reader, reader_features
+from components.features.backbones.weather_reader import SUN_FEATURE_NAMES as _SUN_HEAD_NAMES
+from components.features.backbones.weather_reader import load_reader, load_sun_head, reader_features
 from components.features.backbones.wet_road import FEATURE_NAMES as _WET_ROAD_NAMES
 from components.features.backbones.wet_road import load_detector, wet_road_features
 
@@ -176,6 +183,8 @@ def _names() -> tuple[str, ...]:
     names += list(_WET_ROAD_NAMES)
     # version 6: the weather reader (a frozen learned network)
     names += list(_READER_NAMES)
+    # version 7: the reader's sun head
+    names += list(_SUN_HEAD_NAMES)
     return tuple(names)
 
 
@@ -407,7 +416,7 @@ def _orientation_histogram(v: torch.Tensor, bins: int = 8) -> torch.Tensor:
 
 
 class CuesBackbone(Backbone):
-    """Physical weather cues (375 features); frozen: no trained weights but the wet-road detector's and the reader's. See the module
+    """Physical weather cues (377 features); frozen: no trained weights but the wet-road detector's, the reader's and its sun head's. See the module
     docstring."""
 
     name: ClassVar[str] = "cues"
@@ -415,7 +424,8 @@ class CuesBackbone(Backbone):
     # first: the same features but 1 ULP apart from the tiny's on some CPUs); cached features of "4" are recomputed.
     # 5: the wet road by distance (the detector's weights are in the fingerprint too)
     # 6: the weather reader, and the wet-road detector retrained on 100 000 images
-    version: ClassVar[str] = "6"
+    # 7: the reader's sun head (a second head on its convolutions, for the sun's altitude)
+    version: ClassVar[str] = "7"
     dim: int = len(FEATURE_NAMES)
     trainable: bool = False
     input_size: tuple[int, int] = (128, 128)
@@ -426,12 +436,14 @@ class CuesBackbone(Backbone):
         super().__init__()
         self.wet_road = load_detector()  # frozen, in eval mode; its weights checked against their card
         self.reader = load_reader()  # likewise
+        self.sun_head = load_sun_head()  # likewise, and checked against the reader it reads
 
     def train(self, mode: bool = True) -> CuesBackbone:
         """Modules' training mode; the wet-road detector stays in eval mode (its batch norm is frozen)."""
         super().train(mode)
         self.wet_road.eval()
         self.reader.eval()
+        self.sun_head.eval()
         return self
 
     def config(self) -> dict[str, Any]:
@@ -442,7 +454,7 @@ class CuesBackbone(Backbone):
         return MIRROR
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → cues ``(n, 375)`` float32 (:data:`FEATURE_NAMES`).
+        """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → cues ``(n, 377)`` float32 (:data:`FEATURE_NAMES`).
 
         Region and colour statistics use the 2×2 area-averaged 64×64 image (4× cheaper, same means);
         contrast, edges and the clipped/dark fractions use full resolution (thin streaks, lamps).
@@ -546,7 +558,7 @@ class CuesBackbone(Backbone):
         # the detector reads 128×128 rows (the image converted by area interpolation when of another size)
         x128 = x if tuple(x.shape[-2:]) == (128, 128) else F.interpolate(x, size=(128, 128), mode="area")
         feats.append(wet_road_features(self.wet_road, x128))
-        feats.append(reader_features(self.reader, x128))
+        feats.append(reader_features(self.reader, x128, self.sun_head))
         out = torch.cat(feats, dim=1)
         if out.shape[1] != self.dim:  # internal consistency of FEATURE_NAMES and the code above
             raise RuntimeError(f"cues: computed {out.shape[1]} features, FEATURE_NAMES has {self.dim}")

@@ -27,6 +27,7 @@ Used by :mod:`components.features.backbones.cues` and ``scripts/train_weather_re
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import torch
@@ -35,7 +36,21 @@ from torch import nn
 from components.core.weather import SHORT_NAMES
 from components.features.backbones.frozen import load_frozen
 
-__all__ = ["CARD", "FEATURE_NAMES", "WEIGHTS", "WIDTHS", "WeatherReader", "load_reader", "reader_features"]
+__all__ = [
+    "CARD",
+    "FEATURE_NAMES",
+    "SUN_CARD",
+    "SUN_FEATURE_NAMES",
+    "SUN_HIDDEN",
+    "SUN_WEIGHTS",
+    "SunHead",
+    "WEIGHTS",
+    "WIDTHS",
+    "WeatherReader",
+    "load_reader",
+    "load_sun_head",
+    "reader_features",
+]
 
 #: channels of the five strided convolutions
 WIDTHS: tuple[int, ...] = (16, 32, 48, 64, 96)
@@ -46,6 +61,14 @@ WEIGHTS: Path = Path(__file__).with_name("weather_reader.pt")
 CARD: Path = Path(__file__).with_name("weather_reader.json")
 
 FEATURE_NAMES: tuple[str, ...] = tuple(f"reader_{what}_{k}" for k in SHORT_NAMES for what in ("mean", "log_sd"))
+
+#: hidden units of the sun head
+SUN_HIDDEN: tuple[int, ...] = (512, 256)
+#: the sun head's frozen weights and card
+SUN_WEIGHTS: Path = Path(__file__).with_name("weather_reader_sun.pt")
+SUN_CARD: Path = Path(__file__).with_name("weather_reader_sun.json")
+#: the sun head's features: its mean (unit scale) and log standard deviation of the sun's altitude
+SUN_FEATURE_NAMES: tuple[str, ...] = ("reader_sun_head_mean", "reader_sun_head_log_sd")
 
 
 class WeatherReader(nn.Module):
@@ -70,12 +93,40 @@ class WeatherReader(nn.Module):
         return self.head(self.features(x)).view(-1, 6, 2)
 
 
-def reader_features(net: WeatherReader, x: torch.Tensor) -> torch.Tensor:
-    """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → ``(n, 12)`` (:data:`FEATURE_NAMES`): the reader's ``μ_k`` and
-    ``log σ_k`` averaged over each image and its mirror (exactly mirror-invariant: the sum is commutative)."""
-    both = net(torch.cat([x, x.flip(-1)]))
-    a, b = both[: len(x)], both[len(x) :]
-    return (0.5 * (a + b)).flatten(1)
+class SunHead(nn.Module):
+    """A second head on the reader's frozen convolutions, for the sun's altitude alone: the 4×4 map flattened
+    ``(n, C·16)`` → ``(n, 1, 2)``, the mean of the altitude on the prior box's unit scale and its log standard deviation.
+
+    Why. The reader's own head shares its 256 hidden units among six parameters and reads the daytime sun to ~4°; a
+    wider head that reads only the sun, trained on the frozen map of 100 000 further images, reads it to ~3.5°
+    (BENCHMARKS.md, "Cues version 7"). Trained by ``python scripts/train_sun_head.py``; its card names the reader whose
+    convolutions it reads (:func:`load_sun_head` refuses another).
+    """
+
+    def __init__(self, in_features: int, hidden: tuple[int, ...] = SUN_HIDDEN) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        c = in_features
+        for h in hidden:
+            layers += [nn.Linear(c, h), nn.ReLU()]
+            c = h
+        self.net = nn.Sequential(*layers, nn.Linear(c, 2))
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        return self.net(h).view(-1, 1, 2)
+
+
+def reader_features(net: WeatherReader, x: torch.Tensor, sun: SunHead | None = None) -> torch.Tensor:
+    """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → ``(n, 12)`` (:data:`FEATURE_NAMES`), or ``(n, 14)`` with the sun
+    head (:data:`SUN_FEATURE_NAMES` last): the reader's ``μ_k`` and ``log σ_k`` (and the sun head's) averaged over each
+    image and its mirror (exactly mirror-invariant: the sum is commutative). The convolutions run once for both heads."""
+    h = net.features(torch.cat([x, x.flip(-1)]))
+    both = net.head(h).view(-1, 6, 2)
+    out = [(0.5 * (both[: len(x)] + both[len(x) :])).flatten(1)]
+    if sun is not None:
+        s = sun(h.flatten(1))
+        out.append((0.5 * (s[: len(x)] + s[len(x) :])).flatten(1))
+    return torch.cat(out, dim=1) if len(out) > 1 else out[0]
 
 
 def gaussian_nll(out: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -83,6 +134,27 @@ def gaussian_nll(out: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     the reader's Gaussians ``out`` ``(n, 6, 2)``."""
     mean, log_sd = out[..., 0], out[..., 1].clamp(-7.0, 3.0)
     return (log_sd + 0.5 * ((target - mean) * torch.exp(-log_sd)) ** 2).mean()
+
+
+def load_sun_head(weights: Path = SUN_WEIGHTS, card: Path = SUN_CARD, reader_card: Path = CARD) -> SunHead:
+    """The frozen sun head, in eval mode, its weights checked against its card's sha256
+    (:func:`components.features.backbones.frozen.load_frozen`) and its card's ``reader_sha256`` against the reader's
+    card: a head trained on another reader's convolutions reads nothing (ValueError)."""
+    head = load_frozen(
+        lambda meta: SunHead(int(meta["in_features"]), tuple(meta.get("hidden", SUN_HIDDEN))),
+        weights,
+        card,
+        "reader's sun head",
+        "scripts/train_sun_head.py",
+    )
+    want = json.loads(reader_card.read_text()).get("sha256") if reader_card.is_file() else None
+    got = json.loads(card.read_text()).get("reader_sha256")
+    if got != want:
+        raise ValueError(
+            f"{card}: the sun head was trained on the reader {str(got)[:16]}…, not on {reader_card}'s "
+            f"{str(want)[:16]}… (retrain it: python scripts/train_sun_head.py)"
+        )
+    return head
 
 
 def load_reader(weights: Path = WEIGHTS, card: Path = CARD) -> WeatherReader:

@@ -7,8 +7,8 @@ Renders ``--images`` training images, the plan of the dataset's ``train`` split 
 ``--validation`` images of the ``val`` split's plan under ``--root-seed`` + 1 (the pipeline's splits use
 ``params.yaml``'s seed; the two must differ from it), with the embedded renderer as the ``generate`` stage renders
 (``images_per_scene`` images a scene). Each image and its mirror go through the frozen convolutions of
-:func:`components.features.backbones.weather_reader.load_reader`; :class:`~components.features.backbones.weather_reader.SunHead`
-learns the sun's altitude from both maps by Gaussian negative log likelihood (AdamW, one-cycle learning rate, batch
+:func:`components.features.backbones.weather_reader.load_reader`;
+:class:`~components.features.backbones.weather_reader.SunHead` learns the sun's altitude from both maps by Gaussian negative log likelihood (AdamW, one-cycle learning rate, batch
 order and initial weights from ``--seed``), and the epoch of the lowest validation loss is kept. Writes
 ``components/features/backbones/weather_reader_sun.pt`` and its card ``weather_reader_sun.json`` (data, seeds, the
 reader's sha256, validation figures, machine, command, the weights' sha256). With ``--cache`` the convolutions' maps

@@ -1,12 +1,12 @@
 """`pidc characterize`, `pidc domain`, `pidc relate` on a tiny registry built here.
 
-The registry holds one small NPE on the 375 cues (`cues`), trained for a few epochs with input noise, as the pipeline
-trains its frozen-feature models (without it, 256 images of 375 features gave posteriors so sharp that `relate`'s
-verdict on the in-ODD mix turned on the float order of one thread or two), on images of the procedural simulator, and
-exported with the fast torchscript exporter; the champion pointer names it. Folders of images are rendered at known
-weathers: two source domains (clear noon, overcast rain), an in-ODD target mixing fresh images of both, and an
-out-of-ODD target (foggy night). Commands run in-process through `components.cli.main.main`, and once through the
-installed `pidc` console script.
+The registry holds one small NPE on the 377 cues (`cues`), trained for a few epochs with input noise, as the pipeline
+trains its frozen-feature models (without it, 256 images of the version-6 cues' 375 features gave posteriors so sharp
+that `relate`'s verdict on the in-ODD mix turned on the float order of one thread or two), on images of the procedural
+simulator, and exported with the fast torchscript exporter; the champion pointer names it. Folders of images are
+rendered at known weathers: two source domains (clear noon, overcast rain), an in-ODD target mixing fresh images of
+both, and an out-of-ODD target (foggy night). Commands run in-process through `components.cli.main.main`, and once
+through the installed `pidc` console script.
 """
 
 from __future__ import annotations

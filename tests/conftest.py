@@ -34,7 +34,7 @@ def micro_params(**overrides) -> dict:
     """The default params.yaml shrunk to a few tiny images (for pipeline tests)."""
     p = yaml.safe_load((PROJECT_ROOT / "params.yaml").read_text())
     p["simulator"].update(height=32, width=32)
-    p["data"].update(splits={"train": 24, "val": 8, "test": 48}, shard_size=10, images_per_scene=4)
+    p["data"].update(splits={"train": 24, "val": 16, "test": 48}, shard_size=10, images_per_scene=4)
     p["data"]["runner"].update(kind="threads", workers=2)
     p["contact_sheet"].update(steps=3, scenes=1)
     p["train"]["sizes"] = [8, 16, 24]
@@ -198,7 +198,7 @@ FAST_TRAINING = {
     "train.variants": {"ensemble": {"backbone": "cues", "size": 24, "balance": 0.0, "ensemble": 2}},
     "backbones": {"names": ["cues", "cnn"], "pretrained_dir": None, "batch_size": 256},
     "train.flow": TINY_FLOW,
-    # one base scale τ: the micro project's 8 validation pairs cannot hold two (a gate on models trained for seconds
+    # one base scale τ: the micro project's 16 validation pairs cannot hold two (a gate on models trained for seconds
     # may put all but one pair in the night regime, a clear error by design); tests/test_train_flow.py covers the regime
     "train.temperature_regime": None,
 }

@@ -20,7 +20,7 @@ def test_flow_generates_and_resumes_after_damage(tmp_path, prefect_harness):
 
     params = write_params(tmp_path)
     first = generate(str(params))
-    assert {k: v["count"] for k, v in first["splits"].items()} == {"train": 24, "val": 8, "test": 48}
+    assert {k: v["count"] for k, v in first["splits"].items()} == {"train": 24, "val": 16, "test": 48}
     assert (tmp_path / "reports/data/contact_sheet.png").stat().st_size > 1000
     train = dataset.open_split(tmp_path / "data", "train", verify=True)
     assert train.images().shape == (24, 32, 32, 3)

@@ -8,12 +8,13 @@ Renders ``--images`` training images, the plan of the dataset's ``train`` split 
 ``params.yaml``'s seed; the two must differ from it), with the embedded renderer as the ``generate`` stage renders
 (``images_per_scene`` images a scene). Each image and its mirror go through the frozen convolutions of
 :func:`components.features.backbones.weather_reader.load_reader`;
-:class:`~components.features.backbones.weather_reader.SunHead` learns the sun's altitude from both maps by Gaussian negative log likelihood (AdamW, one-cycle learning rate, batch
-order and initial weights from ``--seed``), and the epoch of the lowest validation loss is kept. Writes
-``components/features/backbones/weather_reader_sun.pt`` and its card ``weather_reader_sun.json`` (data, seeds, the
-reader's sha256, validation figures, machine, command, the weights' sha256). With ``--cache`` the convolutions' maps
-are kept there and read back by later runs. The weights are identical when retrained on one CPU (float order differs
-across CPUs). A new head changes the cues: raise ``CuesBackbone.version``.
+:class:`~components.features.backbones.weather_reader.SunHead` learns the sun's altitude from both maps by Gaussian
+negative log likelihood (AdamW, one-cycle learning rate, batch order and initial weights from ``--seed``), and the epoch
+of the lowest validation loss is kept. Writes ``components/features/backbones/weather_reader_sun.pt`` and its card
+``weather_reader_sun.json`` (data, seeds, the reader's sha256, validation figures, machine, command, the weights'
+sha256). With ``--cache`` the convolutions' maps are kept there and read back by later runs. The weights are identical
+when retrained on one CPU (float order differs across CPUs). A new head changes the cues: raise
+``CuesBackbone.version``.
 """
 
 from __future__ import annotations
@@ -41,11 +42,11 @@ from train_wet_road import arguments, parse, save  # noqa: E402
 
 from components.core.config import load_params  # noqa: E402
 from components.core.files import atomic_path  # noqa: E402
-from components.core.weather import Box  # noqa: E402
+from components.core.weather import PREDICTED, Box  # noqa: E402
 from components.features.backbones import weather_reader as wr  # noqa: E402
 
 #: the sun's altitude among the predicted parameters
-SUN = 3
+SUN = PREDICTED.index("sun_altitude_angle")
 #: images a call of the convolutions (with their mirrors: twice as many rows)
 CHUNK = 64
 

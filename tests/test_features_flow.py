@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+import yaml
 
 from components.features import cache as features
 from components.features.backbones import get_backbone
@@ -57,7 +58,8 @@ def test_trainable_backbone_caches_its_input(generated):
     val = dataset.open_split(folder / "data", "val")
     inputs = features.open_features(folder / "features", "cnn", val)
     cnn = get_backbone("cnn")
-    assert inputs.dtype == np.uint8 and inputs.shape == (8, *cnn.input_size, 3)
+    n_val = yaml.safe_load(params.read_text())["data"]["splits"]["val"]
+    assert inputs.dtype == np.uint8 and inputs.shape == (n_val, *cnn.input_size, 3)
 
 
 def test_features_of_another_dataset_are_refused(generated, tmp_path):

@@ -58,54 +58,12 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_levers import fit, parse_setting, score  # noqa: E402
 from benchmarks.machine import machine_info  # noqa: E402
-from components.core import weather  # noqa: E402
 from components.core.config import load_params  # noqa: E402
 from components.features.backbones.cues import CuesBackbone  # noqa: E402
 from components.posterior import NPE  # noqa: E402
 from components.posterior.settings import ensemble_for, flow_config, temperature_regime, training_config  # noqa: E402
 from components.posterior.temperature import calibrate_post_hoc  # noqa: E402
-from components.simulate import dataset  # noqa: E402
-from components.simulate.procedural import ProceduralSimulator  # noqa: E402
-
-_SIM: ProceduralSimulator | None = None
-
-
-def _render_rows(job: tuple[int, int, np.ndarray, np.ndarray]) -> np.ndarray:
-    """Worker: images ``(k, H, W, 3)`` uint8 of weather rows ``(k, 13)`` in scenes ``(k,)``; job (H, W, rows, scenes)."""
-    global _SIM
-    height, width, rows, seeds = job
-    if _SIM is None or (_SIM.height, _SIM.width) != (height, width):
-        _SIM = ProceduralSimulator(height, width)
-    return np.stack(
-        [
-            _SIM.render({n: float(v) for n, v in zip(weather.ALL_NAMES, r, strict=True)}, int(s))
-            for r, s in zip(rows, seeds, strict=True)
-        ]
-    )
-
-
-def render_split(params, name: str, size: int, workers: int, seed: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The first ``size`` images ``(size, H, W, 3)`` uint8 and θ ``(size, 6)`` of split ``name``'s plan (the
-    simulator's size of ``params``) under root seed ``seed`` (default: ``params.seed``, the pipeline's images)."""
-    sim = ProceduralSimulator(params.simulator.height, params.simulator.width)
-    plan = dataset.plan_split(
-        name,
-        size,
-        seed=params.seed if seed is None else seed,
-        box=params.box,
-        images_per_scene=params.data.images_per_scene,
-        shard_size=params.data.shard_size,
-        renderer_version=sim.version,
-        resolution=(sim.height, sim.width),
-    )
-    chunk = 40 * params.data.images_per_scene  # whole scenes per job: the workers' scene cache is hit
-    jobs = [
-        (sim.height, sim.width, plan.weather[i : i + chunk], plan.scene_seed[i : i + chunk])
-        for i in range(0, size, chunk)
-    ]
-    with mp.get_context("fork").Pool(workers) as pool:
-        images = np.concatenate(list(pool.imap(_render_rows, jobs, chunksize=1)))
-    return images, plan.weather[:, : len(weather.PREDICTED)].astype(np.float32)
+from components.simulate.in_memory import render_split  # noqa: E402
 
 
 def cues_of(images: np.ndarray, device: str, batch: int = 2048) -> torch.Tensor:

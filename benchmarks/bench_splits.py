@@ -37,7 +37,6 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from benchmarks.bench_levers import score  # noqa: E402
-from benchmarks.bench_scale import render_split  # noqa: E402
 from benchmarks.machine import machine_info  # noqa: E402
 from components.core.config import load_params  # noqa: E402
 from components.core.files import atomic_path  # noqa: E402
@@ -46,6 +45,7 @@ from components.features import cache  # noqa: E402
 from components.features.backbones import get_backbone  # noqa: E402
 from components.posterior.store import load_npe  # noqa: E402
 from components.simulate import dataset  # noqa: E402
+from components.simulate.in_memory import render_split  # noqa: E402
 
 #: the figures summarized over the fresh splits: scalars, and per-parameter blocks
 SCALARS = ("info_gain_nats", "test_nll", "calibration_error")

@@ -12,9 +12,9 @@ Renders ``--images`` training images, the plan of the dataset's ``train`` split 
 negative log likelihood (AdamW, one-cycle learning rate, batch order and initial weights from ``--seed``), and the epoch
 of the lowest validation loss is kept. Writes ``components/features/backbones/weather_reader_sun.pt`` and its card
 ``weather_reader_sun.json`` (data, seeds, the reader's sha256, validation figures, machine, command, the weights'
-sha256). With ``--cache`` the convolutions' maps are kept there and read back by later runs. The weights are identical
-when retrained on one CPU (float order differs across CPUs). A new head changes the cues: raise
-``CuesBackbone.version``.
+sha256). With ``--cache`` the convolutions' maps are kept there (a file per 25 000 images) and read back by later runs
+(a larger ``--images`` reuses a smaller run's files). The weights are identical when retrained on one CPU (float order
+differs across CPUs). A new head changes the cues: raise ``CuesBackbone.version``.
 """
 
 from __future__ import annotations
@@ -25,7 +25,6 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 # isort: off
 import components  # noqa: E402,F401  first, before numpy: it pins numpy's SIMD kernels (the pipeline's images)
@@ -37,18 +36,20 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from bench_scale import render_split  # noqa: E402
 from train_wet_road import arguments, parse, save  # noqa: E402
 
 from components.core.config import load_params  # noqa: E402
 from components.core.files import atomic_path  # noqa: E402
 from components.core.weather import PREDICTED, Box  # noqa: E402
 from components.features.backbones import weather_reader as wr  # noqa: E402
+from components.simulate.in_memory import render_split  # noqa: E402
 
 #: the sun's altitude among the predicted parameters
 SUN = PREDICTED.index("sun_altitude_angle")
 #: images a call of the convolutions (with their mirrors: twice as many rows)
 CHUNK = 64
+#: images rendered at a time (≈ 0.8 GB of images), and per file of ``--cache``
+BLOCK = 25000
 
 
 def maps(net: wr.WeatherReader, images: np.ndarray) -> np.ndarray:
@@ -58,7 +59,7 @@ def maps(net: wr.WeatherReader, images: np.ndarray) -> np.ndarray:
     with torch.no_grad():
         for a in range(0, len(images), CHUNK):
             x = torch.from_numpy(np.ascontiguousarray(images[a : a + CHUNK])).permute(0, 3, 1, 2).float() / 255.0
-            h = net.features(torch.cat([x, x.flip(-1)])).flatten(1)
+            h = wr.reader_maps(net, x)
             if out is None:
                 out = np.empty((len(images), 2, h.shape[1]), np.float32)
             b = len(x)
@@ -70,20 +71,33 @@ def maps(net: wr.WeatherReader, images: np.ndarray) -> np.ndarray:
 def rendered_maps(
     params, net: wr.WeatherReader, split: str, n: int, root_seed: int, workers: int, cache: Path | None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Maps ``(n, 2, C·16)`` and θ ``(n, 6)`` of the first ``n`` images of ``split``'s plan under ``root_seed``, read
-    from ``cache`` when it holds them for this reader."""
+    """Maps ``(n, 2, C·16)`` and θ ``(n, 6)`` of the first ``n`` images of ``split``'s plan under ``root_seed``,
+    rendered and read :data:`BLOCK` images at a time (only the maps are kept); a block is read from ``cache`` when it
+    holds it for this reader (plans are nested prefixes: a larger ``--images`` reuses the blocks of a smaller one)."""
     reader = json.loads(wr.CARD.read_text())["sha256"][:12]
-    path = cache / f"sun_head-{split}-{root_seed}-{n}-{reader}.npz" if cache is not None else None
-    if path is not None and path.is_file():
-        with np.load(path) as z:
-            return z["maps"], z["theta"]
-    images, theta = render_split(params, split, n, workers, seed=root_seed)
-    m = maps(net, images)
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(path) as tmp, open(tmp, "wb") as f:
-            np.savez(f, maps=m, theta=theta)
-    return m, theta
+    out_m, out_theta = [], []
+    for start in range(0, n, BLOCK):
+        stop = min(start + BLOCK, n)
+        path = cache / f"sun_head-{split}-{root_seed}-{start}-{stop}-{reader}.npz" if cache is not None else None
+        cached = path is not None and path.is_file()
+        if cached:
+            with np.load(path) as z:
+                m, theta = z["maps"], z["theta"]
+        else:
+            images, theta = render_split(params, split, stop - start, workers, seed=root_seed, start=start)
+            m = maps(net, images)
+            del images
+            if path is not None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                with atomic_path(path) as tmp, open(tmp, "wb") as f:
+                    np.savez(f, maps=m, theta=theta)
+        out_m.append(m)
+        out_theta.append(theta)
+        print(
+            f"{split}: maps of images {start}–{stop - 1} ({'cache' if cached else 'rendered'})",
+            flush=True,
+        )
+    return np.concatenate(out_m), np.concatenate(out_theta)
 
 
 def unit_sun(theta: np.ndarray) -> torch.Tensor:

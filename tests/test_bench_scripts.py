@@ -17,12 +17,12 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_levers import mirror_map, parse_setting, tiny_columns  # noqa: E402
 from benchmarks.bench_puddles import LEVELS, ideal_errors  # noqa: E402
-from benchmarks.bench_scale import SMALL_WIDTHS, WIDTHS, FullResolutionCNN, _parse, render_split  # noqa: E402
+from benchmarks.bench_scale import SMALL_WIDTHS, WIDTHS, FullResolutionCNN, _parse  # noqa: E402
 from benchmarks.bench_splits import fresh_features, summarize  # noqa: E402
 from components.core.config import load_params  # noqa: E402
 from components.core.weather import PREDICTED  # noqa: E402
 from components.features.backbones import get_backbone  # noqa: E402
-from components.simulate import dataset  # noqa: E402
+from components.simulate.in_memory import render_split  # noqa: E402
 from components.simulate.procedural import ProceduralSimulator  # noqa: E402
 
 
@@ -123,28 +123,6 @@ def test_scale_models_grammar() -> None:
     for bad in ("cues-v3-50000", "cues-v4+sky3-50000", "cues-v4-50000-m"):
         with pytest.raises(ValueError, match="version-4 cues alone"):
             _parse(bad, 12, params)
-
-
-def test_scale_renders_the_pipelines_images(tmp_path: Path) -> None:
-    """The first images of bench_scale's test split are byte for byte those of the generate stage's shard writer."""
-    params = load_params(ROOT / "params.yaml")
-    images, theta = render_split(params, "test", 8, workers=1)
-    sim = ProceduralSimulator(params.simulator.height, params.simulator.width)
-    plan = dataset.plan_split(
-        "test",
-        8,
-        seed=params.seed,
-        box=params.box,
-        images_per_scene=params.data.images_per_scene,
-        shard_size=8,
-        renderer_version=sim.version,
-        resolution=(sim.height, sim.width),
-    )
-    spec = plan.shard(0)
-    dataset.render_shard(plan.rows(spec), sim, tmp_path)
-    with np.load(spec.path(tmp_path)) as shard:
-        np.testing.assert_array_equal(images, shard["images"])
-        np.testing.assert_array_equal(theta, shard["weather"][:, :6].astype(np.float32))
 
 
 def test_full_resolution_cnn_shapes() -> None:

@@ -269,8 +269,9 @@ def test_shipped_sun_head_reads_the_sun_higher_as_it_rises() -> None:
 
 
 def test_sun_head_loader_refuses_missing_modified_and_foreign_heads(tmp_path: Path) -> None:
-    """Missing or modified weights are refused as for every frozen network; a head whose card names another reader is
-    refused too (it would read convolutions it never saw)."""
+    """Missing or modified weights, and a card that is not JSON or lacks the head's input width, are refused by name as
+    for every frozen network; a head whose card names another reader is refused too (it would read convolutions it
+    never saw)."""
     with pytest.raises(FileNotFoundError, match="train_sun_head.py"):
         wr.load_sun_head(tmp_path / "none.pt", tmp_path / "none.json")
     weights, card = tmp_path / wr.SUN_WEIGHTS.name, tmp_path / wr.SUN_CARD.name
@@ -280,6 +281,12 @@ def test_sun_head_loader_refuses_missing_modified_and_foreign_heads(tmp_path: Pa
     meta = json.loads(card.read_text())
     card.write_text(json.dumps({**meta, "reader_sha256": "0" * 64}))
     with pytest.raises(ValueError, match="trained on the reader 0000"):
+        wr.load_sun_head(weights, card)
+    card.write_text(json.dumps({k: v for k, v in meta.items() if k != "in_features"}))
+    with pytest.raises(ValueError, match=r"card has no field 'in_features' \(retrain with python scripts/train_sun"):
+        wr.load_sun_head(weights, card)
+    card.write_text("{not json")
+    with pytest.raises(ValueError, match="card is not valid JSON"):
         wr.load_sun_head(weights, card)
     card.write_text(json.dumps(meta))
     state = torch.load(weights, weights_only=True)

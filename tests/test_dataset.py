@@ -3,15 +3,19 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from components.core import weather
+from components.core.config import load_params
 from components.simulate import dataset
+from components.simulate.in_memory import render_split
 from components.simulate.procedural import ProceduralSimulator
 
 BOX = weather.Box.full()
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _plan(name="train", size=30, seed=5, **kw):
@@ -136,3 +140,33 @@ def test_missing_dataset_is_a_clear_error(tmp_path):
     (tmp_path / "manifest.json").write_text("{not json")
     with pytest.raises(dataset.DatasetError, match="corrupt manifest"):
         dataset.open_split(tmp_path, "train")
+
+
+def test_in_memory_rendering_gives_the_shards_images(tmp_path) -> None:
+    """The first images of a split rendered in memory (``in_memory.render_split``) are byte for byte those of the
+    generate stage's shard writer."""
+    params = load_params(ROOT / "params.yaml")
+    images, theta = render_split(params, "test", 8, workers=1)
+    sim = ProceduralSimulator(params.simulator.height, params.simulator.width)
+    plan = dataset.plan_split(
+        "test",
+        8,
+        seed=params.seed,
+        box=params.box,
+        images_per_scene=params.data.images_per_scene,
+        shard_size=8,
+        renderer_version=sim.version,
+        resolution=(sim.height, sim.width),
+    )
+    spec = plan.shard(0)
+    dataset.render_shard(plan.rows(spec), sim, tmp_path)
+    with np.load(spec.path(tmp_path)) as shard:
+        np.testing.assert_array_equal(images, shard["images"])
+        np.testing.assert_array_equal(theta, shard["weather"][:, :6].astype(np.float32))
+    # a piece of the plan from a later row: the same images and weathers as the whole split's rows
+    tail, tail_theta = render_split(params, "test", 3, workers=1, start=5)
+    np.testing.assert_array_equal(tail, images[5:])
+    np.testing.assert_array_equal(tail_theta, theta[5:])
+    for bad in ({"size": 0}, {"size": 2, "start": -1}):
+        with pytest.raises(ValueError, match="size and workers must be ≥ 1 and start ≥ 0"):
+            render_split(params, "test", workers=1, **{"size": 2} | bad)

@@ -10,9 +10,11 @@ import the renderer):
 - :mod:`~components.simulate.dataset`: deterministic plans, shards, receipts and manifests of the train/val/test
   splits (``plan_split``, ``render_shard``, ``open_split``, ``Split``).
 - :mod:`~components.simulate.contact_sheet`: the contact sheet of the ``generate`` stage.
+- :mod:`~components.simulate.in_memory`: ``render_split``, a split's plan rendered into memory without shards (the
+  cue networks' training scripts and the benchmarks).
 
 Used by the ``generate`` stage; ``dataset`` also by every later stage but the export stages, the simulators (``base``,
 ``procedural``, ``carla``) also by ``evaluate`` (PPCs) and ``task2`` (its bag); the ``pidc`` CLI imports all of it.
 """
 
-__all__ = ["base", "procedural", "carla", "dataset", "contact_sheet"]
+__all__ = ["base", "procedural", "carla", "dataset", "contact_sheet", "in_memory"]

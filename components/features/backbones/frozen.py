@@ -34,19 +34,28 @@ def load_frozen(build: Callable[[dict[str, Any]], M], weights: Path, card: Path,
 
     Raises:
         FileNotFoundError: the weights or the card are missing.
-        ValueError: the weights differ from the card's sha256, or do not fit the network.
+        ValueError: the card is not JSON or lacks a field ``build`` needs, the weights differ from the card's sha256,
+            or do not fit the network.
     """
     for path in (weights, card):
         if not path.is_file():
             raise FileNotFoundError(f"{path}: the {what} of the cues is missing (train it: python {script})")
-    meta = json.loads(card.read_text())
+    try:
+        meta = json.loads(card.read_text())
+    except ValueError as e:
+        raise ValueError(f"{card}: the {what}'s card is not valid JSON ({e}); retrain with python {script}") from None
     digest = sha256_file(weights)
     if digest != meta.get("sha256"):
         raise ValueError(
             f"{weights}: sha256 {digest[:16]}… differs from {card}'s {str(meta.get('sha256'))[:16]}… "
             f"(a modified or foreign file; retrain with python {script})"
         )
-    net = build(meta)
+    try:
+        net = build(meta)
+    except KeyError as e:
+        raise ValueError(f"{card}: the {what}'s card has no field {e} (retrain with python {script})") from None
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{card}: the {what}'s card describes no network this pidc can build ({e})") from None
     try:
         net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
     except (RuntimeError, KeyError) as e:

@@ -50,6 +50,7 @@ __all__ = [
     "load_reader",
     "load_sun_head",
     "reader_features",
+    "reader_maps",
 ]
 
 #: channels of the five strided convolutions
@@ -99,7 +100,8 @@ class SunHead(nn.Module):
 
     Why. The reader's own head shares its 256 hidden units among six parameters and reads the daytime sun to ~4°; a
     wider head that reads only the sun, trained on the frozen map of 100 000 further images, reads it to ~3.5°
-    (BENCHMARKS.md, "Cues version 7"). Trained by ``python scripts/train_sun_head.py``; its card names the reader whose
+    (BENCHMARKS.md, "Cues version 7"). A wider one on 200 000 images reads it alone to 3.1° but left the champion's
+    sun where it was (measured, not adopted: "A sun head on 200 000 images"). Trained by ``python scripts/train_sun_head.py``; its card names the reader whose
     convolutions it reads (:func:`load_sun_head` refuses another).
     """
 
@@ -116,17 +118,20 @@ class SunHead(nn.Module):
         return self.net(h).view(-1, 1, 2)
 
 
+def reader_maps(net: WeatherReader, x: torch.Tensor) -> torch.Tensor:
+    """The convolutions' flattened 4×4 maps ``(2n, C·16)`` of sRGB images ``(n, 3, 128, 128)`` in [0, 1]: the n images
+    first, then their mirrors (left-right), in one call; what both heads read."""
+    return net.features(torch.cat([x, x.flip(-1)])).flatten(1)
+
+
 def reader_features(net: WeatherReader, x: torch.Tensor, sun: SunHead | None = None) -> torch.Tensor:
     """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → ``(n, 12)`` (:data:`FEATURE_NAMES`), or ``(n, 14)`` with the sun
     head (:data:`SUN_FEATURE_NAMES` last): the reader's ``μ_k`` and ``log σ_k`` (and the sun head's) averaged over each
-    image and its mirror (exactly mirror-invariant: the sum is commutative). The convolutions run once for both heads."""
-    h = net.features(torch.cat([x, x.flip(-1)]))
-    both = net.head(h).view(-1, 6, 2)
-    out = [(0.5 * (both[: len(x)] + both[len(x) :])).flatten(1)]
-    if sun is not None:
-        s = sun(h.flatten(1))
-        out.append((0.5 * (s[: len(x)] + s[len(x) :])).flatten(1))
-    return torch.cat(out, dim=1) if len(out) > 1 else out[0]
+    image and its mirror (exactly mirror-invariant: the sum is commutative). The convolutions run once for both heads
+    (:func:`reader_maps`)."""
+    n, h = len(x), reader_maps(net, x)
+    heads = [net.head] if sun is None else [net.head, sun]
+    return torch.cat([(0.5 * (g[:n] + g[n:])).flatten(1) for g in (head(h) for head in heads)], dim=1)
 
 
 def gaussian_nll(out: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

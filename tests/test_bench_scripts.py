@@ -17,6 +17,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_levers import mirror_map, parse_setting, tiny_columns  # noqa: E402
 from benchmarks.bench_puddles import LEVELS, ideal_errors  # noqa: E402
+from benchmarks.bench_rain import exact_features, knn_error  # noqa: E402
 from benchmarks.bench_scale import SMALL_WIDTHS, WIDTHS, FullResolutionCNN, _parse  # noqa: E402
 from benchmarks.bench_splits import fresh_features, summarize  # noqa: E402
 from components.core.config import load_params  # noqa: E402
@@ -146,6 +147,25 @@ def test_puddles_ideal_reader_on_a_known_problem() -> None:
     # two independent bands of the same spread: the error shrinks by √2
     two = curve + np.random.default_rng(1).normal(0.0, sigma, (400, 2, levels))
     assert abs(np.median(ideal_errors(two, [0, 1])[:, 40:-40]) - 0.674 * sigma * 100 / np.sqrt(2)) < 0.25
+
+
+def test_rain_exact_reader_on_known_problems() -> None:
+    """``bench_rain``: a scene's exact streak opacity grows with precipitation (common random numbers: more rain only
+    adds drops, each more opaque), none at 0, and at 100 % the total is the scene's capacity; its k-NN reader recovers
+    a target that is a function of the features and not one that is independent of them."""
+    sim = ProceduralSimulator(128, 128, cache_size=2)
+    rows = np.array([exact_features(sim, 3_000_000, p, 20.0) for p in (0.0, 10.0, 40.0, 100.0)])
+    assert rows[0, 0] == pytest.approx(np.log(1e-3)) and np.all(rows[0, 1:7] == 0.0)
+    assert np.all(np.diff(rows[:, 0]) > 0.0), "the total opacity grows with precipitation"
+    assert rows[3, 0] == pytest.approx(rows[3, -1]) and np.all(rows[:, -1] == rows[0, -1]), (
+        "the capacity is the scene's"
+    )
+    assert np.all(np.diff(rows[1:, 6]) > 0.0), "more streak pixels with more rain"
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0.0, 1.0, (600, 2))
+    fit = np.arange(600) < 400
+    assert knn_error(x, 100.0 * x[:, 0], fit) < 3.0
+    assert knn_error(x, rng.uniform(0.0, 100.0, 600), fit) > 15.0  # ~25 for a guess at random
 
 
 def test_splits_fresh_split_is_another_plan_the_same_every_time(tmp_path: Path) -> None:

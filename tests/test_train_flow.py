@@ -74,7 +74,8 @@ def test_train_logs_the_grid_in_mlflow_and_saves_a_loadable_model(project, monke
     child = children["cues-16"]
     assert child.data.tags["mlflow.parentRunId"] == parents[0].info.run_id
     assert child.data.params["backbone"] == "cues" and child.data.params["size"] == "16"
-    assert {"test_nll", "info_gain_nats", "wall_seconds", "temperature.cloudiness"} <= set(child.data.metrics)
+    metrics = set(child.data.metrics)
+    assert {"test_nll", "info_gain_nats", "training_seconds", "wall_seconds", "temperature.cloudiness"} <= metrics
     assert len(client.get_metric_history(child.info.run_id, "val_loss")) == 3
     assert {a.path for a in client.list_artifacts(child.info.run_id)} >= {"loss.png", "metrics.json", "model.pt"}
     assert child.data.tags["data_hash"] and child.data.tags["dvc_stage"] == "train"
@@ -130,6 +131,8 @@ def test_train_grid_trains_every_model_in_parallel_processes_and_resumes(project
     again = run(str(grid))  # finished checkpoints: nothing is trained again, the figures are the same
     for m in first:
         assert again[m]["test_nll"] == first[m]["test_nll"] and again[m]["best_val_loss"] == first[m]["best_val_loss"]
+        # the training time is the epochs' (kept from the first run), not the second run's loading and testing
+        assert again[m]["training_seconds"] == first[m]["training_seconds"] > 0, m
 
     client = mlflow.MlflowClient(uri)
     runs = client.search_runs([client.get_experiment_by_name("pidc-grid").experiment_id])

@@ -96,13 +96,15 @@ class WeatherReader(nn.Module):
 
 class SunHead(nn.Module):
     """A second head on the reader's frozen convolutions, for the sun's altitude alone: the 4×4 map flattened
-    ``(n, C·16)`` → ``(n, 1, 2)``, the mean of the altitude on the prior box's unit scale and its log standard deviation.
+    ``(n, C·16)`` → ``(n, 1, 2)``, the mean of the altitude on the prior box's unit scale and its log standard
+    deviation.
 
     Why. The reader's own head shares its 256 hidden units among six parameters and reads the daytime sun to ~4°; a
     wider head that reads only the sun, trained on the frozen map of 100 000 further images, reads it to ~3.5°
     (BENCHMARKS.md, "Cues version 7"). A wider one on 200 000 images reads it alone to 3.1° but left the champion's
-    sun where it was (measured, not adopted: "A sun head on 200 000 images"). Trained by ``python scripts/train_sun_head.py``; its card names the reader whose
-    convolutions it reads (:func:`load_sun_head` refuses another).
+    sun where it was (measured, not adopted: "A sun head on 200 000 images"). Trained by
+    ``python scripts/train_sun_head.py``; its card names the reader whose convolutions it reads (:func:`load_sun_head`
+    refuses another).
     """
 
     def __init__(self, in_features: int, hidden: tuple[int, ...] = SUN_HIDDEN) -> None:
@@ -145,15 +147,15 @@ def load_sun_head(weights: Path = SUN_WEIGHTS, card: Path = SUN_CARD, reader_car
     """The frozen sun head, in eval mode, its weights checked against its card's sha256
     (:func:`components.features.backbones.frozen.load_frozen`) and its card's ``reader_sha256`` against the reader's
     card: a head trained on another reader's convolutions reads nothing (ValueError)."""
-    head = load_frozen(
-        lambda meta: SunHead(int(meta["in_features"]), tuple(meta.get("hidden", SUN_HIDDEN))),
-        weights,
-        card,
-        "reader's sun head",
-        "scripts/train_sun_head.py",
-    )
+    fields: dict = {}
+
+    def build(meta: dict) -> SunHead:
+        fields.update(meta)  # the card as load_frozen read it: read once
+        return SunHead(int(meta["in_features"]), tuple(meta.get("hidden", SUN_HIDDEN)))
+
+    head = load_frozen(build, weights, card, "reader's sun head", "scripts/train_sun_head.py")
     want = json.loads(reader_card.read_text()).get("sha256") if reader_card.is_file() else None
-    got = json.loads(card.read_text()).get("reader_sha256")
+    got = fields.get("reader_sha256")
     if got != want:
         raise ValueError(
             f"{card}: the sun head was trained on the reader {str(got)[:16]}…, not on {reader_card}'s "

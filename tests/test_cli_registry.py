@@ -363,8 +363,15 @@ def test_relate_gives_weights_gaps_and_a_calibrated_verdict(world, capsys):
     assert set(inside["weights"]) == {"clear", "overcast"}
     assert sum(inside["weights"].values()) == pytest.approx(1, abs=2e-4)
     assert not inside["degenerate"] and inside["threshold"] > 0.01
-    assert "target " + str(world["mix"]) + ": 16 images; model cues-tiny; 16 points (seed 0)" in out
+    assert "target " + str(world["mix"]) + ": 16 images; model cues-tiny; 64 points (seed 0)" in out
     assert "40 in-ODD targets of 16 images held out of the sources; false-alarm rate 0.05" in out
+    assert "each folder: a kernel density of 64 posterior draws per image, bandwidth 3 × the sources' Scott rule" in out
+    # the paper's exact mixtures, on request: the same verdicts here
+    code, out, _ = run(capsys, "relate", world["mix"], *sources, *common, "--smoothing", "none", "--points", 16)
+    exact = relate_output(out)
+    assert code == 0 and not exact["outside"] and "the exact mixture of its images' posteriors" in out, out
+    code, out, _ = run(capsys, "relate", world["night"], *sources, *common, "--smoothing", "none", "--points", 16)
+    assert code == 0 and relate_output(out)["outside"], out
     # foggy night, far from both sources' weathers: outside
     code, out, _ = run(capsys, "relate", world["night"], *sources, *common)
     outside = relate_output(out)
@@ -422,6 +429,14 @@ def test_relate_gives_weights_gaps_and_a_calibrated_verdict(world, capsys):
             r"--calibration-targets must be ≥ 19 for --false-alarm-rate 0\.05, got 10",
         ),
         (["relate", "{mix}", "{root}/nope", "--registry", "{registry}"], r"nope: not a folder"),
+        (
+            ["relate", "{mix}", "{clear}", "--registry", "{registry}", "--draws-per-image", "1"],
+            r"--draws-per-image must be at least 2",
+        ),
+        (
+            ["relate", "{mix}", "{clear}", "--registry", "{registry}", "--bandwidth-scale", "0"],
+            r"--bandwidth-scale must be a positive number, got 0",
+        ),
     ],
 )
 def test_user_errors_are_one_clear_line(world, capsys, args, message):
@@ -452,3 +467,35 @@ def test_console_script(world, tmp_path):
     assert r.returncode == 0, r.stderr
     check_rows(parse_blocks(r.stdout)[str(world["clear"] / "003.png")][1])
     assert "with cues-tiny" in r.stderr
+
+
+def test_relate_defaults_are_the_task3_stage_defaults():
+    """`pidc relate` relates folders as the task3 stage does by default (params.yaml), whose figures the README reports."""
+    from components.cli.models import RELATE_DEFAULTS
+    from components.core.config import load_params
+
+    t = load_params(Path(__file__).resolve().parents[1] / "params.yaml").task3
+    assert RELATE_DEFAULTS == {
+        "n_points": t.n_points,
+        "smoothing": t.smoothing,
+        "draws_per_image": t.draws_per_image,
+        "bandwidth_scale": t.bandwidth_scale,
+    }
+
+
+def test_relate_draws_are_fixed_per_image_across_folders():
+    """An image in two folders gets the same kernel draws in both (equal inputs, one draw per distinct image)."""
+    from components.cli.models import _fixed_draws
+
+    class Shifted:  # q(θ | x) = N(x, I), seeded per call
+        def sample(self, x: np.ndarray, m: int, seed: int) -> np.ndarray:
+            return x[:, None, :] + np.random.default_rng(seed).standard_normal((len(x), m, x.shape[1]))
+
+    a = np.arange(12.0).reshape(4, 3)
+    b = np.vstack([a[2:], a[:1]])
+    da, db = _fixed_draws(Shifted(), [a, b], 5, seed=3)
+    assert da.shape == (4, 5, 3) and db.shape == (3, 5, 3)
+    assert np.array_equal(da[2], db[0]) and np.array_equal(da[3], db[1]) and np.array_equal(da[0], db[2])
+    assert not np.array_equal(da[0], da[1])
+    again = _fixed_draws(Shifted(), [a, b], 5, seed=3)
+    assert all(np.array_equal(x, y) for x, y in zip((da, db), again, strict=True))

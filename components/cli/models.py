@@ -4,8 +4,9 @@
   (CSV/Parquet) and a corner plot per image;
 * domain — a folder of images as one weighted bag (equal weights, a weights CSV, or an exponentially decaying
   stream) → the domain's weather distribution (Task II);
-* relate — a target folder against source folders: mixture weights λ̂, gaps, and the out-of-ODD verdict with a
-  threshold calibrated on in-ODD targets resampled from the sources (Task III).
+* relate — a target folder against source folders, each a kernel density of its images' posterior draws as in the
+  ``task3`` stage (or the paper's exact mixture): mixture weights λ̂, gaps, and the out-of-ODD verdict with a
+  threshold calibrated on in-ODD targets held out of the sources (Task III).
 
 Models come from the registry (:func:`components.export.lookup.load_registered`: ``champion``, a model id, or an
 exported folder) or from the MLflow Model Registry by URI (``models:/pidc@champion``, downloaded with MLflow's
@@ -36,6 +37,10 @@ __all__ = ["add_model_commands", "read_weights_csv"]
 
 #: Images read and turned into posterior inputs per batch (bounds memory for large folders).
 READ_BATCH = 64
+#: ``pidc relate``'s defaults: the ``task3`` stage's defaults in params.yaml (``task3.n_points``, ``smoothing``,
+#: ``draws_per_image``, ``bandwidth_scale``; a test holds them equal), so that the command relates folders as the stage
+#: whose figures the README reports (BENCHMARKS.md "Task III: the characterization")
+RELATE_DEFAULTS: dict[str, Any] = {"n_points": 64, "smoothing": "scott", "draws_per_image": 64, "bandwidth_scale": 3.0}
 
 
 # --- shared -----------------------------------------------------------------------------------------------------
@@ -367,10 +372,29 @@ def _cmd_domain(args: argparse.Namespace) -> int:
 # --- relate ---------------------------------------------------------------------------------------------------
 
 
+def _fixed_draws(posterior: Any, bags: list[np.ndarray], m: int, seed: int) -> list[np.ndarray]:
+    """``m`` posterior draws of each image of ``bags`` (one ``(Nₖ, m, d)`` array per bag), fixed once per image: an
+    image in two folders (equal inputs) gets the same draws in both, as a kernel density of a subset or a
+    reweighting of the same images needs. One sampling call over the distinct images, stream
+    ``(seed, "relate", "kernel")``."""
+    import hashlib
+
+    union = np.concatenate(bags)
+    first: dict[bytes, int] = {}
+    index = np.array([first.setdefault(hashlib.sha256(row.tobytes()).digest(), len(first)) for row in union])
+    distinct = np.unique(index, return_index=True)[1]  # the first row of each distinct input, in index order
+    draws = np.asarray(posterior.sample(union[distinct], m, derive_seed(seed, "relate", "kernel")))[index]
+    return np.split(draws, np.cumsum([len(b) for b in bags])[:-1])
+
+
 def _cmd_relate(args: argparse.Namespace) -> int:
-    """Each folder an equally weighted :class:`components.domains.absolute.Domain`; the verdict is
+    """Each folder an equally weighted bag, characterized as the ``task3`` stage does by default (``--smoothing
+    scott``: the :class:`components.domains.kernel.KernelDomain` of ``--draws-per-image`` fixed posterior draws per
+    image, with ``--bandwidth-scale`` × the sources' Scott bandwidth) or by the paper's exact mixture (``none``:
+    :class:`components.domains.absolute.Domain`); the verdict is
     :func:`components.domains.relative.calibrate_on_sources`'s detector on :attr:`Relation.relative_gap`."""
     from components.domains.absolute import Domain
+    from components.domains.kernel import KernelDomain, sources_bandwidth
     from components.domains.relative import calibrate_on_sources, relate
 
     seed = _seed(args.seed)
@@ -389,6 +413,12 @@ def _cmd_relate(args: argparse.Namespace) -> int:
         raise CLIError(
             f"--calibration-targets must be ≥ {need} for --false-alarm-rate {alpha:g}, got {args.calibration_targets}"
         )
+    kernel = args.smoothing == "scott"
+    if kernel:
+        if args.draws_per_image < 2:
+            raise CLIError(f"--draws-per-image must be at least 2 (a bag's spread), got {args.draws_per_image}")
+        if not (0.0 < args.bandwidth_scale < math.inf):
+            raise CLIError(f"--bandwidth-scale must be a positive number, got {args.bandwidth_scale:g}")
     listed = [_list([f]) for f in folders]
     model = _load_model(args)
     bags = [_read_all(model, paths, "relate", f"read {f.name}") for f, paths in zip(folders, listed, strict=False)]
@@ -396,8 +426,19 @@ def _cmd_relate(args: argparse.Namespace) -> int:
     names = [f.name for f in folders[1:]]
     if len(set(names)) < len(names):
         names = [str(f) for f in folders[1:]]
+    draws, bandwidth = None, None
     try:
-        rel = relate(target, sources, args.points, derive_seed(seed, "relate"))
+        if kernel:
+            draws = _fixed_draws(model.posterior, [b.x for b in bags], args.draws_per_image, seed)
+            bandwidth = args.bandwidth_scale * sources_bandwidth(draws[1:])
+            rel = relate(
+                KernelDomain(draws[0], None, bandwidth),
+                [KernelDomain(d, None, bandwidth) for d in draws[1:]],
+                args.points,
+                derive_seed(seed, "relate"),
+            )
+        else:
+            rel = relate(target, sources, args.points, derive_seed(seed, "relate"))
         detector = calibrate_on_sources(
             sources,
             args.calibration_targets,
@@ -406,11 +447,21 @@ def _cmd_relate(args: argparse.Namespace) -> int:
             derive_seed(seed, "calibrate"),
             target_size=len(target),
             progress=sys.stderr.isatty(),
+            draws=None if draws is None else draws[1:],
+            bandwidth=bandwidth,
         )
     except ValueError as e:
         raise CLIError(str(e)) from None
     outside = detector.decide(rel.relative_gap)
     print(f"target {folders[0]}: {len(target)} images; model {model.name}; {args.points} points (seed {seed})")
+    if bandwidth is None:
+        print("each folder: the exact mixture of its images' posteriors (--smoothing none)")
+    else:
+        print(
+            f"each folder: a kernel density of {args.draws_per_image} posterior draws per image, bandwidth "
+            f"{args.bandwidth_scale:g} × the sources' Scott rule = "
+            + ", ".join(f"{n} {h:.3g}" for n, h in zip(model.posterior.box.names, bandwidth, strict=False))
+        )
     width = max(len("source"), *map(len, names))
     print(f"{'source':<{width}}  {'images':>6}  {'weight λ̂':>9}")
     for name, s, lam in zip(names, sources, rel.weights, strict=False):
@@ -496,7 +547,32 @@ def add_model_commands(sub: Any) -> None:
         help="source domains (one folder each); with one source λ̂ = 1 and the verdict tests likeness",
     )
     _model_options(p)
-    p.add_argument("--points", type=int, default=16, help="n_W, points drawn from the target (default 16)")
+    p.add_argument(
+        "--points",
+        type=int,
+        default=RELATE_DEFAULTS["n_points"],
+        help="n_W, points drawn from the target (default %(default)s)",
+    )
+    p.add_argument(
+        "--smoothing",
+        choices=("scott", "none"),
+        default=RELATE_DEFAULTS["smoothing"],
+        help="how a folder's weather is characterized: scott, a kernel density of its images' posterior draws (the "
+        "task3 stage's); none, the paper's exact mixture of posteriors, isolated peaks for a sharp model and "
+        "folders of tens of images (default %(default)s)",
+    )
+    p.add_argument(
+        "--draws-per-image",
+        type=int,
+        default=RELATE_DEFAULTS["draws_per_image"],
+        help="posterior draws per image behind the kernel density (default %(default)s)",
+    )
+    p.add_argument(
+        "--bandwidth-scale",
+        type=float,
+        default=RELATE_DEFAULTS["bandwidth_scale"],
+        help="the kernel's bandwidth in units of Scott's rule on the sources (default %(default)s)",
+    )
     p.add_argument(
         "--false-alarm-rate",
         type=float,

@@ -383,6 +383,8 @@ def calibrate_on_sources(
     target_size: int | None = None,
     solver: SimplexLeastSquares | None = None,
     progress: bool = False,
+    draws: Sequence[np.ndarray] | None = None,
+    bandwidth: np.ndarray | None = None,
 ) -> OddDetector:
     """An :class:`OddDetector` on :attr:`Relation.relative_gap`, calibrated on in-ODD targets made from the sources.
 
@@ -422,8 +424,14 @@ def calibrate_on_sources(
             shrinks as the bag grows); default half the mean size of the sources.
         solver: the :class:`SimplexLeastSquares` to use (default the module's shared one).
         progress: show a tqdm bar over the calibration targets.
+        draws, bandwidth: with both, every bag (the held-out target and the reduced sources) is the
+            :class:`components.domains.kernel.KernelDomain` of its members' fixed posterior draws — ``draws[k]``
+            ``(Nₖ, m, d)``, one row per member of source k — with the kernel bandwidth ``(d,)``: the ``task3`` stage's
+            smoothing, for a target related to kernel densities of the sources with that bandwidth. Without them, the
+            exact mixtures of posteriors.
     """
     from components.domains.absolute import Domain
+    from components.domains.kernel import KernelDomain
 
     sources = list(sources)
     if not sources:
@@ -440,6 +448,7 @@ def calibrate_on_sources(
                 f"sources[{k}] uses another posterior or observation shape than sources[0]: the "
                 "calibration targets mix members of all sources under one estimator"
             )
+    kernel = _kernel_inputs(sources, draws, bandwidth)
     alpha = float(false_alarm_rate)
     if not (0.0 < alpha < 1.0):
         raise ValueError(f"false_alarm_rate must be in (0, 1), got {false_alarm_rate!r}")
@@ -468,15 +477,45 @@ def calibrate_on_sources(
         r = rng(seed, "relative", "calibration", t)
         counts = _held_out_counts(r.dirichlet(np.ones(k)), capacity, int(target_size), r)
         held, reduced = [], []
-        for s, members, m in zip(sources, positive, counts, strict=False):
+        for k_, (s, members, m) in enumerate(zip(sources, positive, counts, strict=False)):
             w = s.weights[members]
             out = r.choice(members, size=int(m), replace=False, p=w / w.sum()) if m else members[:0]
             keep = np.setdiff1d(np.arange(len(s)), out)
-            held.append(s.bag[out])
-            reduced.append(Domain(s.posterior, s.bag[keep], s.weights[keep]))
-        target = Domain(sources[0].posterior, np.concatenate(held))
+            if kernel is None:
+                held.append(s.bag[out])
+                reduced.append(Domain(s.posterior, s.bag[keep], s.weights[keep]))
+            else:
+                held.append(kernel[0][k_][out])
+                reduced.append(KernelDomain(kernel[0][k_][keep], s.weights[keep], kernel[1]))
+        if kernel is None:
+            target: Characterization = Domain(sources[0].posterior, np.concatenate(held))
+        else:
+            target = KernelDomain(np.concatenate(held), None, kernel[1])
         rel = relate(
             target, reduced, n_points, derive_seed(seed, "relative", "calibration", t, "relate"), solver=solver
         )
         gaps[t] = rel.relative_gap
     return OddDetector.calibrate(gaps, alpha)
+
+
+def _kernel_inputs(
+    sources: Sequence[Domain], draws: Sequence[np.ndarray] | None, bandwidth: np.ndarray | None
+) -> tuple[list[np.ndarray], np.ndarray] | None:
+    """``(draws per source, bandwidth)`` checked against the sources, or None for the exact mixtures."""
+    if draws is None and bandwidth is None:
+        return None
+    if draws is None or bandwidth is None:
+        raise ValueError("kernel densities need both draws (one array per source) and a bandwidth")
+    if len(draws) != len(sources):
+        raise ValueError(f"draws must hold one array per source ({len(sources)}), got {len(draws)}")
+    per = [np.asarray(d, dtype=np.float64) for d in draws]
+    for k, (d, s) in enumerate(zip(per, sources, strict=False)):
+        if d.ndim != 3 or d.shape[0] != len(s) or d.shape[1] < 1:
+            raise ValueError(
+                f"draws[{k}] must have shape ({len(s)} members, m draws, d), one row per member of sources[{k}], "
+                f"got shape {d.shape}"
+            )
+    h = np.asarray(bandwidth, dtype=np.float64)
+    if h.shape != (per[0].shape[2],):
+        raise ValueError(f"bandwidth must have shape ({per[0].shape[2]},), got shape {h.shape}")
+    return per, h

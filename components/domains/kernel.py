@@ -23,7 +23,9 @@ give δ(λ) = 0 at the true λ, exactly as with the exact mixture), and p̃ is a
 (choose a draw by weight, add 𝒩(0, diag h²)). It is not confined to the prior box: at the box faces it leaks the
 mass of a kernel half-width, the same for target and sources.
 
-Used by the ``task3`` stage and the scheduled monitoring (through :class:`components.domains.sweep.NoiseSweep`).
+Used by the ``task3`` stage and the scheduled monitoring (through :class:`components.domains.sweep.NoiseSweep`), and
+by the ``pidc`` CLI's ``relate`` (its folders, and :func:`components.domains.relative.calibrate_on_sources`' held-out
+targets).
 """
 
 from __future__ import annotations

@@ -477,7 +477,7 @@ def calibrate_on_sources(
         r = rng(seed, "relative", "calibration", t)
         counts = _held_out_counts(r.dirichlet(np.ones(k)), capacity, int(target_size), r)
         held, reduced = [], []
-        for k_, (s, members, m) in enumerate(zip(sources, positive, counts, strict=False)):
+        for j, (s, members, m) in enumerate(zip(sources, positive, counts, strict=False)):
             w = s.weights[members]
             out = r.choice(members, size=int(m), replace=False, p=w / w.sum()) if m else members[:0]
             keep = np.setdiff1d(np.arange(len(s)), out)
@@ -485,8 +485,8 @@ def calibrate_on_sources(
                 held.append(s.bag[out])
                 reduced.append(Domain(s.posterior, s.bag[keep], s.weights[keep]))
             else:
-                held.append(kernel[0][k_][out])
-                reduced.append(KernelDomain(kernel[0][k_][keep], s.weights[keep], kernel[1]))
+                held.append(kernel[0][j][out])
+                reduced.append(KernelDomain(kernel[0][j][keep], s.weights[keep], kernel[1]))
         if kernel is None:
             target: Characterization = Domain(sources[0].posterior, np.concatenate(held))
         else:

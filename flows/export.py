@@ -73,6 +73,12 @@ def write_onnx(model_id: str, params_path: str, threads: int | None = None) -> d
         "backbone_options": header["backbone_options"],
         "backbone_fingerprint": backbone.fingerprint(),
         "size": extra.get("size"),
+        # the images the model learned from: consumers resize others to the backbone's input (pidc's CLI says so)
+        "training_renders": {
+            "simulator": params.simulator.backend,
+            "height": params.simulator.height,
+            "width": params.simulator.width,
+        },
         "metrics": extra.get("metrics", {}),
         "data_hash": extra.get("data_hash"),
         "git_commit": tracking.git_commit(paths.root),

@@ -47,6 +47,18 @@ def test_render_writes_the_simulators_image(tmp_path):
     np.testing.assert_array_equal(png, expected)
 
 
+def test_render_defaults_to_the_default_profiles_image_size(tmp_path):
+    """`pidc render` without --height/--width renders the images the default profile's models learned from."""
+    from pathlib import Path
+
+    from components.core.config import load_params
+
+    sim = load_params(Path(__file__).resolve().parents[1] / "params.yaml").simulator
+    out = tmp_path / "noon.png"
+    assert main(["render", "--preset", "clear_noon", "--seed", "1", "-o", str(out)]) == 0
+    assert cv2.imread(str(out), cv2.IMREAD_COLOR).shape == (sim.height, sim.width, 3)
+
+
 @pytest.mark.parametrize(
     "args, message",
     [

@@ -85,7 +85,13 @@ def world(tmp_path_factory) -> dict[str, Path]:
         model,
         registry / "cues-tiny",
         exporter="torchscript",
-        card={"model_id": "cues-tiny", "backbone": "cues", "backbone_options": {}, "size": 256},
+        card={
+            "model_id": "cues-tiny",
+            "backbone": "cues",
+            "backbone_options": {},
+            "size": 256,
+            "training_renders": {"simulator": "procedural", "height": 32, "width": 32},  # as the export flow writes
+        },
     )
     champion = registry.parent / CHAMPION_POINTER  # <project>/reports/task1/champion.json
     champion.parent.mkdir(parents=True)
@@ -168,6 +174,13 @@ def test_characterize_a_folder_with_bad_images(world, capsys, tmp_path):
     good = [str(world["mixed"] / n) for n in ("000.png", "001.png", "002.jpg")]
     assert list(blocks) == good
     assert "note: not square (48×32 pixels)" in blocks[good[2]][0]
+    # the one image not of the model's training size (32×32) is named once, with what its posterior is worth
+    caveats = [line for line in err.splitlines() if "learned from" in line]
+    assert caveats == [
+        "pidc characterize: note: cues-tiny learned from 32×32 renders; images of 48×32 are area-resized, and the "
+        "calibration measured in the pipeline does not cover them: the simulator's own renders made larger and "
+        'resized gave overconfident posteriors (BENCHMARKS.md, "Images of another resolution")'
+    ]
     errors = [line for line in err.splitlines() if line.startswith("pidc characterize: skipped")]
     assert errors == [
         f"pidc characterize: skipped {world['mixed'] / 'empty.png'}: empty file (0 bytes)",
@@ -289,6 +302,27 @@ def test_characterize_when_no_image_is_readable(world, capsys, tmp_path):
     assert list(tmp_path.iterdir()) == []  # no partial draws file
 
 
+def test_resize_caveat_once_per_command_and_for_cards_that_do_not_name_their_images(world, capsys, tmp_path):
+    """A card exported before `training_renders` existed: the caveat when the backbone converts the images, once for
+    all of relate's folders; a card naming the images' own size: none."""
+    folder = tmp_path / "registry" / "old-card"
+    shutil.copytree(world["registry"] / "cues-tiny", folder)
+    card = json.loads((folder / "card.json").read_text())
+    del card["training_renders"]
+    card["model_id"] = "old-card"
+    (folder / "card.json").write_text(json.dumps(card))
+    common = ["--registry", tmp_path / "registry", "--model", "old-card", "--calibration-targets", 20]
+    code, _, err = run(capsys, "relate", world["mix"], world["clear"], world["overcast"], *common)
+    caveats = [line for line in err.splitlines() if "learned from" in line]
+    assert code == 0 and caveats == [
+        "pidc relate: note: old-card learned from renders of a size its card does not name (re-export it); images of "
+        "32×32 are area-resized, and the calibration measured in the pipeline does not cover them: the simulator's own "
+        'renders made larger and resized gave overconfident posteriors (BENCHMARKS.md, "Images of another resolution")'
+    ]
+    code, _, err = run(capsys, "characterize", world["clear"], "--registry", world["registry"], "--samples", 50)
+    assert code == 0 and "learned from" not in err
+
+
 def domain_table(out: str) -> tuple[float, dict[str, dict[str, float]]]:
     size = float(re.search(r"effective size (\d+\.\d)", out)[1])
     rows = parse_rows(out)
@@ -357,7 +391,8 @@ def test_relate_gives_weights_gaps_and_a_calibrated_verdict(world, capsys):
     sources = [world["clear"], world["overcast"]]
     common = ["--registry", world["registry"], "--model", "cues-tiny", "--calibration-targets", 40]
     # fresh images of both sources' weathers: inside
-    code, out, _ = run(capsys, "relate", world["mix"], *sources, *common)
+    code, out, err = run(capsys, "relate", world["mix"], *sources, *common)
+    assert "learned from" not in err  # every folder holds images of the model's training size
     inside = relate_output(out)
     assert code == 0 and not inside["outside"] and inside["relative_gap"] <= inside["threshold"], out
     assert set(inside["weights"]) == {"clear", "overcast"}

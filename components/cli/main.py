@@ -159,8 +159,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--set", action="append", metavar="NAME=VALUE", help="a weather parameter, e.g. --set fog_density=40"
     )
     p.add_argument("--seed", type=int, help="scene seed (required): same seed, same scene")
-    p.add_argument("--height", type=int, default=256)
-    p.add_argument("--width", type=int, default=256)
+    # the default profile's image size (simulator.height/width): the size its models learned from; a model's card
+    # names its own (training_renders), and `pidc characterize` says when it resizes other sizes
+    p.add_argument("--height", type=int, default=128, help="pixels (default 128: the default profile's models' images)")
+    p.add_argument("--width", type=int, default=128, help="pixels (default 128)")
     p.add_argument("-o", "--out", type=Path, default=Path("render.png"), help="PNG path (default: render.png)")
     p.set_defaults(func=_cmd_render)
 

@@ -114,10 +114,30 @@ class _Read:
     x: np.ndarray
 
 
-def _inputs(model: Any, images: list[np.ndarray], bar: Any, command: str) -> np.ndarray:
+def _resize_caveat(model: Any, sizes: set[tuple[int, int]], converted: bool) -> str | None:
+    """What a posterior of a resized image is worth, for images of ``sizes`` (H, W): a note when a size differs from
+    the model's training images (the card's ``training_renders``), or, for a card that does not name them (exported
+    before pidc recorded it), when the backbone ``converted`` the images to its input; None otherwise."""
+    trained = model.posterior.card.get("training_renders") or {}
+    want = (trained.get("height"), trained.get("width"))
+    known = None not in want
+    other = sorted(s for s in sizes if s != want) if known else (sorted(sizes) if converted else [])
+    if not other:
+        return None
+    shown = ", ".join(f"{w}×{h}" for h, w in other[:3]) + (" …" if len(other) > 3 else "")
+    learned = f"{want[1]}×{want[0]} renders" if known else "renders of a size its card does not name (re-export it)"
+    return (
+        f"{model.name} learned from {learned}; images of {shown} are area-resized, and the calibration measured in "
+        "the pipeline does not cover them: the simulator's own renders made larger and resized gave overconfident "
+        'posteriors (BENCHMARKS.md, "Images of another resolution")'
+    )
+
+
+def _inputs(model: Any, images: list[np.ndarray], bar: Any, command: str, said: set[str]) -> np.ndarray:
     """uint8 images of any sizes → the model's inputs ``x (n, …)`` in the same order (one batch per size).
 
-    The backbone's one-time "converting H×W images" warning becomes a ``note:`` line on stderr.
+    The backbone's one-time "converting H×W images" warning becomes a ``note:`` line on stderr, and so does, once per
+    command (``said``), the caveat of images not of the model's training size (:func:`_resize_caveat`).
     """
     from components.core.images import map_by_size
 
@@ -126,15 +146,23 @@ def _inputs(model: Any, images: list[np.ndarray], bar: Any, command: str) -> np.
         out = map_by_size(images, model.inputs)
     for message in dict.fromkeys(str(w.message) for w in caught):
         _say(bar, f"pidc {command}: note: {message}", err=True)
+    if "resized" not in said and (caveat := _resize_caveat(model, {im.shape[:2] for im in images}, bool(caught))):
+        said.add("resized")
+        _say(bar, f"pidc {command}: note: {caveat}", err=True)
     return out
 
 
-def _read_batches(model: Any, paths: list[Path], command: str, desc: str) -> Iterator[tuple[_Read, Any]]:
+def _read_batches(
+    model: Any, paths: list[Path], command: str, desc: str, said: set[str] | None = None
+) -> Iterator[tuple[_Read, Any]]:
     """Read ``paths`` in batches of :data:`READ_BATCH`: yields the readable ones' inputs (and the progress bar).
 
-    Bad files are reported on stderr (``pidc <command>: skipped <path>: <reason>``) and left out.
+    Bad files are reported on stderr (``pidc <command>: skipped <path>: <reason>``) and left out. Notes said once per
+    command are recorded in ``said`` (shared by the calls of one command; a new set when None).
     """
     from components.core.images import ImageError, read_image
+
+    said = set() if said is None else said
 
     with _progress(len(paths), desc) as bar:
         for start in range(0, len(paths), READ_BATCH):
@@ -152,12 +180,12 @@ def _read_batches(model: Any, paths: list[Path], command: str, desc: str) -> Ite
                     images.append(image)
                 bar.update(1)
             if good:
-                yield _Read(good, notes, _inputs(model, images, bar, command)), bar
+                yield _Read(good, notes, _inputs(model, images, bar, command, said)), bar
 
 
-def _read_all(model: Any, paths: list[Path], command: str, desc: str) -> _Read:
+def _read_all(model: Any, paths: list[Path], command: str, desc: str, said: set[str] | None = None) -> _Read:
     """All readable images' inputs at once (the bag of a domain); CLIError when none is readable."""
-    parts = [read for read, _ in _read_batches(model, paths, command, desc)]
+    parts = [read for read, _ in _read_batches(model, paths, command, desc, said)]
     if not parts:
         raise CLIError(f"none of the {len(paths)} images could be read")
     return _Read(
@@ -421,7 +449,10 @@ def _cmd_relate(args: argparse.Namespace) -> int:
             raise CLIError(f"--bandwidth-scale must be a positive number, got {args.bandwidth_scale:g}")
     listed = [_list([f]) for f in folders]
     model = _load_model(args)
-    bags = [_read_all(model, paths, "relate", f"read {f.name}") for f, paths in zip(folders, listed, strict=False)]
+    said: set[str] = set()  # notes said once for the whole command
+    bags = [
+        _read_all(model, paths, "relate", f"read {f.name}", said) for f, paths in zip(folders, listed, strict=False)
+    ]
     target, *sources = [Domain(model.posterior, b.x) for b in bags]
     names = [f.name for f in folders[1:]]
     if len(set(names)) < len(names):

@@ -301,8 +301,10 @@ def test_prefect_yaml_deployments_monitor_on_a_process_worker(monitored_project,
             == (key == "wrong-labels")
             == bool(report["alarms"])
         )
+        assert model["resized_images"] == 0  # every image, simulated or recorded, of the training renders' size
         if key == "wrong-labels":
             assert report["source"] == str(wrong) and report["alarms"][0].startswith("calibration alarm: cues-2000")
+            assert "resized" not in report["alarms"][0]
         else:
             odd = report["odd"]
             assert odd["model"] == "cues-2000" and odd["n"] == params.monitor.false_alarm_targets

@@ -89,7 +89,10 @@ def test_the_calibration_alarm_names_the_model_and_the_band():
     assert checks.calibration_alarm("cues-5000", within) is None
     message = checks.calibration_alarm("cues-5000", within | {"calibration_error": 0.2})
     assert message.startswith("calibration alarm: cues-5000") and "0.200 on 300 images" in message
-    assert "band 0.090" in message
+    assert "band 0.090" in message and "resized" not in message
+    resized = checks.calibration_alarm("cues-5000", within | {"calibration_error": 0.2, "resized_images": 12})
+    assert resized.startswith(message) and "; 12 of the images were resized from another size" in resized
+    assert checks.calibration_alarm("cues-5000", within | {"resized_images": 12}) is None
     odd = checks.FalseAlarmTest(FalseAlarmCheck.of(np.ones(10, bool), 0.1, "fresh"), LEVEL, 0, 4, "binomial", (0, 4))
     found = checks.alarms({"a": within, "b": within | {"calibration_error": 0.5}}, odd, "a")
     assert [m.split(":")[0] for m in found] == ["calibration alarm", "ODD false-alarm alarm"]

@@ -118,14 +118,12 @@ def _resize_caveat(model: Any, sizes: set[tuple[int, int]], converted: bool) -> 
     """What a posterior of a resized image is worth, for images of ``sizes`` (H, W): a note when a size differs from
     the model's training images (the card's ``training_renders``), or, for a card that does not name them (exported
     before pidc recorded it), when the backbone ``converted`` the images to its input; None otherwise."""
-    trained = model.posterior.card.get("training_renders") or {}
-    want = (trained.get("height"), trained.get("width"))
-    known = None not in want
-    other = sorted(s for s in sizes if s != want) if known else (sorted(sizes) if converted else [])
+    want = model.training_size
+    other = sorted(s for s in sizes if s != want) if want else (sorted(sizes) if converted else [])
     if not other:
         return None
     shown = ", ".join(f"{w}×{h}" for h, w in other[:3]) + (" …" if len(other) > 3 else "")
-    learned = f"{want[1]}×{want[0]} renders" if known else "renders of a size its card does not name (re-export it)"
+    learned = f"{want[1]}×{want[0]} renders" if want else "renders of a size its card does not name (re-export it)"
     return (
         f"{model.name} learned from {learned}; images of {shown} are area-resized, and the calibration measured in "
         "the pipeline does not cover them: the simulator's own renders made larger and resized gave overconfident "

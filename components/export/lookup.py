@@ -81,6 +81,16 @@ class RegisteredPosterior:
     def name(self) -> str:
         return str(self.posterior.card.get("model_id", self.folder.name))
 
+    @property
+    def training_size(self) -> tuple[int, int] | None:
+        """(height, width) in pixels of the images the model learned from (the card's ``training_renders``, written by
+        the export stage); None for a card exported before it recorded them. Images of another size are area-resized
+        to the backbone's input, and the pipeline's calibration does not cover them (BENCHMARKS.md, "Images of another
+        resolution")."""
+        renders = self.posterior.card.get("training_renders") or {}
+        size = (renders.get("height"), renders.get("width"))
+        return None if None in size else (int(size[0]), int(size[1]))
+
     def inputs(self, images: np.ndarray, batch_size: int = 256) -> np.ndarray:
         """uint8 images ``(n, H, W, 3)`` → the posterior's input ``x`` (float32)."""
         from components.features.cache import posterior_inputs

@@ -49,13 +49,21 @@ class MonitoringAlarm(RuntimeError):
 
 def calibration_alarm(model: str, metrics: Mapping[str, float]) -> str | None:
     """The alarm of ``model`` whose Task I ``metrics`` (``calibration_error``, ``calibration_band``, ``images``,
-    ``samples``) put it outside its band, else None."""
+    ``samples``; optionally ``resized_images``, those of another size than the model's training renders) put it outside
+    its band, else None."""
     error, band = float(metrics["calibration_error"]), float(metrics["calibration_band"])
     if error <= band:
         return None
+    resized = int(metrics.get("resized_images") or 0)
+    why = (
+        f"; {resized} of the images were resized from another size than its training renders, which its calibration "
+        'does not cover (BENCHMARKS.md, "Images of another resolution")'
+        if resized
+        else ""
+    )
     return (
         f"calibration alarm: {model} has a calibration error of {error:.3f} on {int(metrics['images'])} images "
-        f"({int(metrics['samples'])} draws each), outside the band {band:.3f} of a perfectly calibrated model"
+        f"({int(metrics['samples'])} draws each), outside the band {band:.3f} of a perfectly calibrated model{why}"
     )
 
 

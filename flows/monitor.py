@@ -67,8 +67,9 @@ def judge_model(
     _, lp, lp_truth = task1.posterior_draws(model.posterior, x, draw.theta, samples, seed)
     metrics, coverage, _ = task1.task1_metrics(lp, lp_truth, params.box.log_volume(), band)
     metrics |= {"images": len(draw), "samples": samples}
-    if model.training_size is not None:  # images of another size: resized, outside what the calibration covers
-        metrics["resized_images"] = sum(im.shape[:2] != model.training_size for im in draw.images)
+    size = model.training_size  # images of another size: resized, outside what the calibration covers
+    if size is not None:
+        metrics["resized_images"] = sum(im.shape[:2] != size for im in draw.images)
     return {"model": entry.model, "folder": str(folder), "metrics": metrics, "coverage": coverage.tolist()}
 
 

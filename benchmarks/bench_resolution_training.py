@@ -56,22 +56,25 @@ CHUNK = 400  # images per rendering task: 50 scenes of the splits' 8 images
 RESULTS = ROOT / "benchmarks" / "results" / "resolution"
 
 
-def _render(job: tuple[int, int, np.ndarray, np.ndarray]) -> np.ndarray:
-    """Render rows of complete weathers ``(n, 13)`` at ``size × size`` in their scenes, area-resized to ``out × out``."""
+def _render(job: tuple) -> np.ndarray:
+    """Render rows of complete weathers ``(n, 13)`` at ``size × size`` in their scenes, area-resized to ``out × out``
+    (with the renderer's calibration table ``calibration``, or its own when ``None``)."""
     from components.features.backbones.imageops import resize_area
     from components.simulate.procedural import ProceduralSimulator
+    from components.simulate.procedural.calibration import CALIBRATION
 
-    size, out, rows, seeds = job
-    sim = ProceduralSimulator(size, size, cache_size=2)
+    size, out, rows, seeds, calibration = job
+    sim = ProceduralSimulator(size, size, cache_size=2, calibration=calibration or CALIBRATION)
     images = np.stack(
         [sim.render(dict(zip(weather.ALL_NAMES, r, strict=True)), int(s)) for r, s in zip(rows, seeds, strict=True)]
     )
     return images if size == out else resize_area(images, (out, out))
 
 
-def render(rows: np.ndarray, seeds: np.ndarray, size: int, out: int) -> np.ndarray:
-    """Complete weathers ``(n, 13)`` and scene seeds ``(n,)`` → uint8 images ``(n, out, out, 3)``, in 2 processes."""
-    jobs = [(size, out, rows[i : i + CHUNK], seeds[i : i + CHUNK]) for i in range(0, len(rows), CHUNK)]
+def render(rows: np.ndarray, seeds: np.ndarray, size: int, out: int, calibration=None) -> np.ndarray:
+    """Complete weathers ``(n, 13)`` and scene seeds ``(n,)`` → uint8 images ``(n, out, out, 3)``, in 2 processes
+    (``calibration``: a :class:`~components.simulate.procedural.Calibration` other than the renderer's own)."""
+    jobs = [(size, out, rows[i : i + CHUNK], seeds[i : i + CHUNK], calibration) for i in range(0, len(rows), CHUNK)]
     with Pool(2) as pool:
         return np.concatenate(pool.map(_render, jobs))
 
@@ -102,6 +105,19 @@ def cached(name: str, make) -> np.ndarray:
     np.save(path, value)
     print(f"  {name}: {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
     return value
+
+
+def test_weathers(params, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The test weathers: θ ``(n, 6)`` from the prior, complete weathers ``(n, 13)`` (a random sun azimuth each) and
+    scene seeds ``(n,)`` (from :data:`SCENE_BASE`, one scene each), seeded from ``params.seed``."""
+    box = params.box
+    rng = seeding.rng(params.seed, "bench_resolution_training", "test")
+    theta = (box.low + rng.random((n, box.dim)) * (box.high - box.low)).astype(np.float32)
+    azimuth = weather.sample_azimuth(rng, n)
+    rows = np.stack(
+        [weather.weather_array(weather.weather_from_theta(t, a)) for t, a in zip(theta, azimuth, strict=True)]
+    )
+    return theta, rows, SCENE_BASE + np.arange(n)
 
 
 def fit(params, x: dict[str, np.ndarray], theta: dict[str, np.ndarray], size: int) -> NPE:
@@ -154,13 +170,7 @@ def main(argv: list[str] | None = None) -> None:
         "mix": {k: np.where(pick[k][:, None], aa[k], native[k]) for k in theta},
     }
 
-    rng = seeding.rng(params.seed, "bench_resolution_training", "test")
-    test_theta = (box.low + rng.random((args.test_images, box.dim)) * (box.high - box.low)).astype(np.float32)
-    azimuth = weather.sample_azimuth(rng, args.test_images)
-    rows = np.stack(
-        [weather.weather_array(weather.weather_from_theta(t, a)) for t, a in zip(test_theta, azimuth, strict=True)]
-    )
-    seeds = SCENE_BASE + np.arange(args.test_images)
+    test_theta, rows, seeds = test_weathers(params, args.test_images)
     tests = {
         s: cached(f"test-{args.test_images}-{s}", lambda s=s: cues(render(rows, seeds, s, side)))
         for s in args.test_sizes

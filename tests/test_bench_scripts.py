@@ -1,4 +1,4 @@
-"""The ablation benchmarks' own claims: ``bench_levers`` and ``bench_scale`` read their settings strictly, and
+"""The ablation benchmarks' own claims: ``bench_rain_pool`` changes only the rain's two named constants; ``bench_levers`` and ``bench_scale`` read their settings strictly, and
 ``bench_scale`` renders exactly the pipeline's images (the same plan and renderer as the ``generate`` stage), so that
 its figures compare with the pipeline's on the same images; ``bench_splits`` renders other scenes and weathers under
 another root seed, the same ones every time."""
@@ -18,6 +18,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.bench_levers import mirror_map, parse_setting, tiny_columns  # noqa: E402
 from benchmarks.bench_puddles import LEVELS, ideal_errors  # noqa: E402
 from benchmarks.bench_rain import exact_features, knn_error  # noqa: E402
+from benchmarks.bench_rain_pool import calibration_of  # noqa: E402
 from benchmarks.bench_resolution import paired_difference  # noqa: E402
 from benchmarks.bench_scale import SMALL_WIDTHS, WIDTHS, FullResolutionCNN, _parse  # noqa: E402
 from benchmarks.bench_splits import fresh_features, summarize  # noqa: E402
@@ -226,3 +227,36 @@ def test_resolution_paired_difference_holds_the_true_mean_difference() -> None:
         paired_difference(np.zeros(3), np.zeros(4))
     with pytest.raises(ValueError, match="paired values"):
         paired_difference(np.zeros(1), np.zeros(1))
+
+
+def test_rain_pool_variants_change_only_the_rain() -> None:
+    """``bench_rain_pool``'s variants: ``native`` is the renderer's own table; ``pool=N,alpha=A`` changes exactly
+    ``rain_drop_pool`` and ``streak_alpha``; its renders equal the renderer's own where it does not rain (the pool
+    is the scene's own random stream) and differ where it does; the renderer's own values give its own images; a
+    malformed variant is refused naming the item."""
+    from components.simulate.procedural.calibration import CALIBRATION
+
+    assert calibration_of("native") is None
+    table = calibration_of("pool=1400,alpha=0.275")
+    assert (table.rain_drop_pool, table.streak_alpha) == (1400, 0.275)
+    changed = {n for n in CALIBRATION.__dataclass_fields__ if getattr(table, n) != getattr(CALIBRATION, n)}
+    assert changed == {"rain_drop_pool", "streak_alpha"}
+    own = ProceduralSimulator(64, 64)
+    same = ProceduralSimulator(64, 64, calibration=calibration_of(f"pool={CALIBRATION.rain_drop_pool}"))
+    other = ProceduralSimulator(64, 64, calibration=table)
+    dry = {
+        "cloudiness": 20.0,
+        "fog_density": 10.0,
+        "precipitation": 0.0,
+        "precipitation_deposits": 60.0,
+        "sun_altitude_angle": 30.0,
+        "wind_intensity": 40.0,
+        "sun_azimuth_angle": 120.0,
+    }
+    wet = {**dry, "precipitation": 70.0}
+    assert np.array_equal(other.render(dry, 3), own.render(dry, 3))
+    assert np.array_equal(same.render(wet, 3), own.render(wet, 3))
+    assert not np.array_equal(other.render(wet, 3), own.render(wet, 3))
+    for bad in ("pool", "drops=3", "pool=2800,alpha"):
+        with pytest.raises(ValueError, match="expected native or pool=N,alpha=A"):
+            calibration_of(bad)

@@ -9,7 +9,9 @@ splits), rendered three ways:
 
 - ``native128``: as the pipeline renders them (its cues cache, ``features/cues``);
 - ``aa256``: at 256 × 256, area-resized to 128 × 128;
-- ``mix``: each image (training and validation) the one or the other, with probability ½ (seeded).
+- ``mix``: each image (training and validation) the one or the other, with probability ½ (seeded);
+- ``vary``: each scene's images rendered at a size drawn uniformly from ``--vary`` LOW..HIGH pixels (128..384; seeded,
+  one per scene: its geometry is built once at that size), area-resized to 128 × 128.
 
 Each is scored (:func:`benchmarks.bench_levers.score`) on ``--test-images`` weathers from the prior, one scene each
 (seeds the dataset splits do not use), rendered at every ``--test-sizes`` s and area-resized to 128 × 128: test NLL,
@@ -50,33 +52,49 @@ from components.posterior.settings import flow_config, temperature_regime, train
 from components.posterior.temperature import calibrate_post_hoc  # noqa: E402
 from components.simulate import dataset  # noqa: E402
 
-MODELS = ("native128", "aa256", "mix")
+MODELS = ("native128", "aa256", "mix", "vary")
 SCENE_BASE = 5_000_000  # scene seeds of the test weathers (the dataset splits and the other benchmarks use others)
 CHUNK = 400  # images per rendering task: 50 scenes of the splits' 8 images
 RESULTS = ROOT / "benchmarks" / "results" / "resolution"
 
 
 def _render(job: tuple) -> np.ndarray:
-    """Render rows of complete weathers ``(n, 13)`` at ``size × size`` in their scenes, area-resized to ``out × out``
-    (with the renderer's calibration table ``calibration``, or its own when ``None``)."""
+    """Render rows of complete weathers ``(n, 13)`` in their scenes, each at its ``sizes[i] × sizes[i]``, area-resized to
+    ``out × out`` (with the renderer's calibration table ``calibration``, or its own when ``None``)."""
     from components.features.backbones.imageops import resize_area
     from components.simulate.procedural import ProceduralSimulator
     from components.simulate.procedural.calibration import CALIBRATION
 
-    size, out, rows, seeds, calibration = job
-    sim = ProceduralSimulator(size, size, cache_size=2, calibration=calibration or CALIBRATION)
-    images = np.stack(
-        [sim.render(dict(zip(weather.ALL_NAMES, r, strict=True)), int(s)) for r, s in zip(rows, seeds, strict=True)]
-    )
-    return images if size == out else resize_area(images, (out, out))
+    sizes, out, rows, seeds, calibration = job
+    sims: dict[int, ProceduralSimulator] = {}
+    images = []
+    for size, r, s in zip(sizes.tolist(), rows, seeds, strict=True):
+        if size not in sims:
+            sims[size] = ProceduralSimulator(size, size, cache_size=2, calibration=calibration or CALIBRATION)
+        image = sims[size].render(dict(zip(weather.ALL_NAMES, r, strict=True)), int(s))
+        images.append(resize_area(image[None], (out, out))[0])
+    return np.stack(images)
 
 
-def render(rows: np.ndarray, seeds: np.ndarray, size: int, out: int, calibration=None) -> np.ndarray:
-    """Complete weathers ``(n, 13)`` and scene seeds ``(n,)`` → uint8 images ``(n, out, out, 3)``, in 2 processes
-    (``calibration``: a :class:`~components.simulate.procedural.Calibration` other than the renderer's own)."""
-    jobs = [(size, out, rows[i : i + CHUNK], seeds[i : i + CHUNK], calibration) for i in range(0, len(rows), CHUNK)]
+def render(rows: np.ndarray, seeds: np.ndarray, size, out: int, calibration=None) -> np.ndarray:
+    """Complete weathers ``(n, 13)`` and scene seeds ``(n,)`` → uint8 images ``(n, out, out, 3)``, in 2 processes;
+    ``size`` one render size for all or one per image ``(n,)``; ``calibration``: a
+    :class:`~components.simulate.procedural.Calibration` other than the renderer's own."""
+    sizes = np.broadcast_to(np.asarray(size, dtype=np.int64), (len(rows),))
+    jobs = [
+        (sizes[i : i + CHUNK], out, rows[i : i + CHUNK], seeds[i : i + CHUNK], calibration)
+        for i in range(0, len(rows), CHUNK)
+    ]
     with Pool(2) as pool:
         return np.concatenate(pool.map(_render, jobs))
+
+
+def scene_sizes(seeds: np.ndarray, low: int, high: int, seed: int) -> np.ndarray:
+    """A render size per image ``(n,)``, uniform in ``low..high`` pixels, one per scene (the images of a scene share
+    its geometry, built once at its size), seeded by ``seed`` and the scene seed alone."""
+    scenes = np.unique(seeds)
+    drawn = seeding.rng(seed, "bench_resolution_training", "vary").integers(low, high + 1, len(scenes))
+    return drawn[np.searchsorted(scenes, seeds)]
 
 
 def _cues(images: np.ndarray) -> np.ndarray:
@@ -141,9 +159,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--test-sizes", type=int, nargs="+", default=[128, 160, 192, 256, 384])
     ap.add_argument("--draws", type=int, default=500)
     ap.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
+    ap.add_argument(
+        "--vary", type=int, nargs=2, default=[128, 384], metavar=("LOW", "HIGH"), help="vary's render sizes (pixels)"
+    )
     ap.add_argument("--params", type=Path, default=ROOT / "params.yaml")
     args = ap.parse_args(argv)
     params = load_params(args.params)
+    if not 128 <= args.vary[0] <= args.vary[1] <= 2048:
+        ap.error(f"--vary LOW HIGH must satisfy 128 <= LOW <= HIGH <= 2048, got {args.vary}")
     side = params.simulator.height
     if (params.simulator.height, params.simulator.width) != (128, 128):
         ap.error(f"the pipeline's images must be 128 × 128 (aa256 supersamples them 2 × 2), got {side}")
@@ -163,11 +186,27 @@ def main(argv: list[str] | None = None) -> None:
         )
         for k, s in splits.items()
     }
+    vary = {
+        k: cached(
+            f"{k}-{len(theta[k])}-vary{args.vary[0]}-{args.vary[1]}",
+            lambda s=s, k=k: cues(
+                render(
+                    s.weather[: stop[k]],
+                    s.scene_seed[: stop[k]],
+                    scene_sizes(s.scene_seed[: stop[k]], *args.vary, params.seed),
+                    side,
+                )
+            ),
+        )
+        for k, s in splits.items()
+        if "vary" in args.models
+    }
     pick = {k: seeding.rng(params.seed, "bench_resolution_training", k).random(len(theta[k])) < 0.5 for k in theta}
     inputs = {
         "native128": native,
         "aa256": aa,
         "mix": {k: np.where(pick[k][:, None], aa[k], native[k]) for k in theta},
+        "vary": vary,
     }
 
     test_theta, rows, seeds = test_weathers(params, args.test_images)

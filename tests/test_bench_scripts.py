@@ -20,6 +20,7 @@ from benchmarks.bench_puddles import LEVELS, ideal_errors  # noqa: E402
 from benchmarks.bench_rain import exact_features, knn_error  # noqa: E402
 from benchmarks.bench_rain_pool import calibration_of  # noqa: E402
 from benchmarks.bench_resolution import paired_difference  # noqa: E402
+from benchmarks.bench_resolution_training import render, scene_sizes  # noqa: E402
 from benchmarks.bench_scale import SMALL_WIDTHS, WIDTHS, FullResolutionCNN, _parse  # noqa: E402
 from benchmarks.bench_splits import fresh_features, summarize  # noqa: E402
 from components.core.config import load_params  # noqa: E402
@@ -260,3 +261,28 @@ def test_rain_pool_variants_change_only_the_rain() -> None:
     for bad in ("pool", "drops=3", "pool=2800,alpha"):
         with pytest.raises(ValueError, match="expected native or pool=N,alpha=A"):
             calibration_of(bad)
+
+
+def test_resolution_training_vary_draws_one_size_per_scene() -> None:
+    """``bench_resolution_training``'s ``vary`` renders: one size per scene, uniform over LOW..HIGH (every size drawn,
+    none outside; a χ² test over four equal bands on 4 000 scenes), the same for a scene wherever its images sit;
+    ``render`` with a size per image gives each image its own size's render, area-resized."""
+    from scipy import stats
+
+    from components.core import weather
+    from components.features.backbones.imageops import resize_area
+
+    seeds = np.repeat(np.arange(4000) * 7 + 11, 3)
+    sizes = scene_sizes(seeds, 128, 135, 2026)
+    assert sizes.min() == 128 and sizes.max() == 135 and set(sizes.tolist()) == set(range(128, 136))
+    assert (sizes.reshape(-1, 3) == sizes[::3, None]).all()
+    shuffled = np.random.default_rng(0).permutation(len(seeds))
+    assert np.array_equal(scene_sizes(seeds[shuffled], 128, 135, 2026), sizes[shuffled])
+    counts = np.bincount(scene_sizes(np.arange(4000), 128, 383, 2026) - 128, minlength=256).reshape(4, 64).sum(axis=1)
+    assert stats.chisquare(counts).pvalue > 0.001
+    row = weather.weather_from_theta(np.array([20.0, 10.0, 60.0, 30.0, 40.0, 50.0]), 120.0)
+    weathers = np.stack([weather.weather_array(row)] * 2)
+    images = render(weathers, np.array([5, 6]), np.array([32, 48]), 32)
+    assert images.shape == (2, 32, 32, 3)
+    assert np.array_equal(images[0], ProceduralSimulator(32, 32).render(row, 5))
+    assert np.array_equal(images[1], resize_area(ProceduralSimulator(48, 48).render(row, 6)[None], (32, 32))[0])

@@ -77,7 +77,7 @@ class Calibration:
     rain_rate_exponent: float = _c(1.5, "1", "γ in R = R_max (p/100)^γ")
     rain_extinction: float = _c(0.312e-3, "m^-1", "β_rain = k R^0.67 (Weber 2015), per (mm/h)^0.67")
     # --- rain streaks and lens drops (§2.4) -------------------------------------------------------
-    rain_drop_pool: int = _c(700, "1", "pre-drawn rain drops per scene at 128 px (scaled with pixel area)")
+    rain_drop_pool: int = _c(700, "1", "pre-drawn rain drops per scene (the same at every image size)")
     rain_count_exponent: float = _c(0.7, "1", "fraction of pool drawn = (R/R_max)^exponent")
     rain_near: float = _c(0.8, "m", "nearest drawn drop depth")
     rain_far: float = _c(8.0, "m", "farthest drawn drop depth (farther rain enters as β_rain)")

@@ -5,9 +5,11 @@ drawn (common random numbers: more rain only adds drops). A drop's diameter is i
 u mapped through the Marshall–Palmer exponential, D = −ln(1−u)/Λ with Λ = 4.1 R^−0.21 mm⁻¹; its
 fall speed v(D) = 9.65 − 10.3 e^{−0.6 D} m/s (Atlas 1973). The lateral wind u_x = k_w (wind/100)
 sin(α_w) (α_w the scene's wind azimuth relative to the camera) slants the streak by atan(u_x/v);
-its image length is f·|(u_x, v)|·T_eff/Z pixels. Streaks are scattered with ``np.bincount`` over
-sample points along every segment (no Python loop over drops), occluded by the depth map, and
-composited with the mean scene radiance (a drop refracts a wide field of view).
+its image length is f·|(u_x, v)|·T_eff/Z pixels, its width one pixel at 128 × 128 (px = H/128 pixels at
+H × W, its opacity per pixel × px/⌈px⌉, so that a streak's opacity per solid angle does not depend on the image
+size). Streaks are scattered with ``np.bincount`` over sample points along every segment (⌈px⌉ lines
+across; no Python loop over drops), occluded by the depth map, and composited with the mean scene radiance
+(a drop refracts a wide field of view). The pool holds the same drops at every image size.
 Lens drops: pixels covered by an active drop (priority < fraction·p/100) show a blurred, flipped
 view of the scene through the drop.
 
@@ -55,6 +57,11 @@ def streak_alpha(scene: Scene, precipitation: float, wind: float, cal: Calibrati
     s = np.linspace(-0.5, 0.5, k, dtype=np.float32)[None, :]
     cols = scene.rain.col[:n, None] + (s * length[:, None]) * ex[:, None]
     rows = scene.rain.row[:n, None] + (s * length[:, None]) * ey[:, None]
+    m = max(1, math.ceil(px - 1e-6))  # sample lines across a streak px pixels wide (one at 128 pixels and below)
+    if m > 1:
+        across = (((np.arange(m, dtype=np.float32) + 0.5) / m - 0.5) * px)[None, None, :]
+        cols = (cols[:, :, None] - across * ey[:, None, None]).reshape(n, k * m)
+        rows = (rows[:, :, None] + across * ex[:, None, None]).reshape(n, k * m)
     ci = cols.astype(np.int32)
     ri = rows.astype(np.int32)
     inside = (cols >= 0) & (ci < scene.width) & (rows >= 0) & (ri < scene.height)
@@ -64,7 +71,10 @@ def streak_alpha(scene: Scene, precipitation: float, wind: float, cal: Calibrati
         * (precipitation / 100.0) ** cal.streak_alpha_exponent
         * np.clip(cal.streak_near_depth / z, cal.streak_far_alpha, 1.0)
     )
-    w = np.broadcast_to((a * np.minimum(length / (k - 1), 1.0))[:, None], cols.shape)[inside]
+    per_sample = a * np.minimum(length / (k - 1), 1.0)
+    if px != m:  # a streak's opacity spread over its width: the same per 128-pixel area at every size
+        per_sample = per_sample * np.float32(px / m)
+    w = np.broadcast_to(per_sample[:, None], cols.shape)[inside]
     zz = np.broadcast_to(z[:, None], cols.shape)[inside]
     w = np.where(scene.depth[pix] > zz, w, 0.0)
     acc = np.bincount(pix, weights=w, minlength=N)

@@ -46,7 +46,7 @@ from .sky import cloud_coverage, henyey_greenstein, sky_radiance, sun_sky
 __all__ = ["ProceduralSimulator", "ALGORITHM_VERSION"]
 
 #: bump when the image-formation algorithm changes (the calibration hash covers the constants)
-ALGORITHM_VERSION = 1
+ALGORITHM_VERSION = 2  # 2: the rain pool and a streak's opacity per solid angle independent of the image size
 
 cv2.setNumThreads(1)
 

@@ -11,7 +11,7 @@ cues NPE with the pipeline's settings for ``--size`` images (temperature fitted 
 calibration error and its band, daytime errors and central-68 % coverage, night coverage). ``native`` is the renderer's
 own table on the pipeline's own cues cache.
 
-Renders' cues are cached in ``benchmarks/results/rain_pool/<variant>/`` (~40 MB each). ~6 min a variant on 2 cores:
+Renders' cues are cached in ``benchmarks/results/rain_pool/<renderer version>/<variant>/`` (~40 MB each). ~6 min a variant on 2 cores:
 
     .venv/bin/python benchmarks/bench_rain_pool.py --size 20000 --variants native pool=2800,alpha=0.1375
 """
@@ -88,10 +88,10 @@ def main(argv: list[str] | None = None) -> None:
 
     results: dict[str, dict] = {}
     for variant, table in tables.items():
-        resolution.RESULTS = RESULTS / variant.replace(",", "_").replace("=", "")
+        resolution.RESULTS = RESULTS / resolution.RENDERER / variant.replace(",", "_").replace("=", "")
         if table is None:
             x = {k: cache.open_features(ROOT / "features", "cues", s, stop=stop[k]) for k, s in splits.items()}
-            resolution.RESULTS = ROOT / "benchmarks" / "results" / "resolution"
+            resolution.RESULTS = ROOT / "benchmarks" / "results" / "resolution" / resolution.RENDERER
             name = f"test-{args.test_images}-128"
         else:
             x = {

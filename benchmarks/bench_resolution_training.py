@@ -17,8 +17,8 @@ Each is scored (:func:`benchmarks.bench_levers.score`) on ``--test-images`` weat
 (seeds the dataset splits do not use), rendered at every ``--test-sizes`` s and area-resized to 128 × 128: test NLL,
 calibration error with the band of a perfectly calibrated model, daytime errors and central-68 % coverage.
 
-Renders and features are cached in ``benchmarks/results/resolution/`` (~1.5 GB for 20 000 + 6 000 images; delete it to
-start over). Needs the pipeline's data and cues cache (``dvc repro features@cues``). ~25 min on 2 cores:
+The cues of the renders are cached in ``benchmarks/results/resolution/<renderer version>/`` (~30 MB per 20 000 images;
+delete it to start over). Needs the pipeline's data and cues cache (``dvc repro features@cues``). ~25 min on 2 cores:
 
     .venv/bin/python benchmarks/bench_resolution_training.py --size 20000
 """
@@ -51,11 +51,14 @@ from components.posterior import NPE, train  # noqa: E402
 from components.posterior.settings import flow_config, temperature_regime, training_config  # noqa: E402
 from components.posterior.temperature import calibrate_post_hoc  # noqa: E402
 from components.simulate import dataset  # noqa: E402
+from components.simulate.procedural.calibration import calibration_hash  # noqa: E402
+from components.simulate.procedural.renderer import ALGORITHM_VERSION  # noqa: E402
 
 MODELS = ("native128", "aa256", "mix", "vary")
 SCENE_BASE = 5_000_000  # scene seeds of the test weathers (the dataset splits and the other benchmarks use others)
 CHUNK = 400  # images per rendering task: 50 scenes of the splits' 8 images
-RESULTS = ROOT / "benchmarks" / "results" / "resolution"
+RENDERER = f"procedural-{ALGORITHM_VERSION}+{calibration_hash()}"  # the renderer's version: caches are kept per version
+RESULTS = ROOT / "benchmarks" / "results" / "resolution" / RENDERER
 
 
 def _render(job: tuple) -> np.ndarray:

@@ -188,6 +188,7 @@ def main(argv: list[str] | None = None) -> None:
             lambda s=s, k=k: cues(render(s.weather[: stop[k]], s.scene_seed[: stop[k]], 2 * side, side)),
         )
         for k, s in splits.items()
+        if {"aa256", "mix"} & set(args.models)
     }
     vary = {
         k: cached(
@@ -208,7 +209,7 @@ def main(argv: list[str] | None = None) -> None:
     inputs = {
         "native128": native,
         "aa256": aa,
-        "mix": {k: np.where(pick[k][:, None], aa[k], native[k]) for k in theta},
+        "mix": {k: np.where(pick[k][:, None], aa[k], native[k]) for k in aa},
         "vary": vary,
     }
 

@@ -88,24 +88,28 @@ def main(argv: list[str] | None = None) -> None:
 
     results: dict[str, dict] = {}
     for variant, table in tables.items():
-        resolution.RESULTS = RESULTS / resolution.RENDERER / variant.replace(",", "_").replace("=", "")
-        if table is None:
+        if table is None:  # the pipeline's cues cache, and bench_resolution_training's test renders at 128
             x = {k: cache.open_features(ROOT / "features", "cues", s, stop=stop[k]) for k, s in splits.items()}
-            resolution.RESULTS = ROOT / "benchmarks" / "results" / "resolution" / resolution.RENDERER
-            name = f"test-{args.test_images}-128"
+            folder, name = resolution.RESULTS, f"test-{args.test_images}-128"
         else:
+            folder, name = (
+                RESULTS / resolution.RENDERER / variant.replace(",", "_").replace("=", ""),
+                f"test-{args.test_images}",
+            )
             x = {
                 k: resolution.cached(
                     f"{k}-{len(theta[k])}",
                     lambda s=s, k=k, table=table: resolution.cues(
                         resolution.render(s.weather[: stop[k]], s.scene_seed[: stop[k]], 128, 128, table)
                     ),
+                    folder,
                 )
                 for k, s in splits.items()
             }
-            name = f"test-{args.test_images}"
         xt = np.array(
-            resolution.cached(name, lambda t=table: resolution.cues(resolution.render(rows, seeds, 128, 128, t)))
+            resolution.cached(
+                name, lambda t=table: resolution.cues(resolution.render(rows, seeds, 128, 128, t)), folder
+            )
         )
         t0 = time.perf_counter()
         model = resolution.fit(params, {k: v.astype(np.float32) for k, v in x.items()}, theta, args.size)

@@ -115,14 +115,14 @@ def cues(images: np.ndarray) -> np.ndarray:
         return np.concatenate(pool.map(_cues, [images[:half], images[half:]]))
 
 
-def cached(name: str, make) -> np.ndarray:
-    """``RESULTS/<name>.npy``, made by ``make()`` when missing."""
-    path = RESULTS / f"{name}.npy"
+def cached(name: str, make, folder: Path = RESULTS) -> np.ndarray:
+    """``folder/<name>.npy`` (by default :data:`RESULTS`), made by ``make()`` when missing."""
+    path = folder / f"{name}.npy"
     if path.is_file():
         return np.load(path)
     t0 = time.perf_counter()
     value = make()
-    RESULTS.mkdir(parents=True, exist_ok=True)
+    folder.mkdir(parents=True, exist_ok=True)
     np.save(path, value)
     print(f"  {name}: {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
     return value

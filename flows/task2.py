@@ -35,13 +35,14 @@ def render_bag(params_path: str) -> tuple[np.ndarray, np.ndarray]:
     return task2_.render_bag(params, make_simulator(params.simulator))
 
 
-def _note(row: dict, floor: float) -> str:
-    """A parameter's panel title: W₁ estimate→truth against the prior's and their ratio, the ratio of the mixture
-    with no bias left (``floor``: :func:`components.domains.task2.width_floor` at s = 1), the marginal HDR."""
+def _note(row: dict, floor: float, calibrated: float) -> str:
+    """A parameter's panel title: W₁ estimate→truth against the prior's and their ratio, the ratios of the mixture of
+    calibrated posteriors of the same widths (``calibrated``) and of the posteriors moved onto their truths (``floor``;
+    :func:`components.domains.task2.width_floor` at s = 1), the marginal HDR."""
     unit = "°" if row["unit"] == "deg" else row["unit"]
     return (
         f"W₁ to the truth {row['wasserstein_estimate']:.3g} {unit} (prior {row['wasserstein_prior']:.3g} {unit}): "
-        f"ratio {row['wasserstein_ratio']:.2f}\nwith no bias (the posteriors' widths alone): {floor:.2f}\n"
+        f"ratio {row['wasserstein_ratio']:.2f}\nthese widths, calibrated: {calibrated:.2f}; on the truths: {floor:.2f}\n"
         f"HDR {row['hdr_width']:.3g} {unit} wide, holds {100 * row['true_mass_in_hdr']:.0f} % of the truth"
     )
 
@@ -78,7 +79,7 @@ def task2(params_path: str = "params.yaml") -> dict:
         metrics["deconvolution"] = how
         metrics["mixture"], mixture, _, _ = task2_.task2_metrics(domain, params, model.name)
         del metrics["mixture"]["model"]
-    metrics["width_floor"] = task2_.width_floor(domain.posterior, contexts, theta, params)
+    metrics["width_floor"] = floor = task2_.width_floor(domain.posterior, contexts, theta, params)
 
     labels = ("ground truth P_D(W)", f"estimate P̂_D(W), {t.estimate}")
     figures = [
@@ -97,7 +98,7 @@ def task2(params_path: str = "params.yaml") -> dict:
                 prior,
                 box=params.box,
                 notes=[
-                    _note(r, metrics["width_floor"]["wasserstein_ratio"]["1"][n])
+                    _note(r, floor["wasserstein_ratio"]["1"][n], floor["calibrated"]["1"][n])
                     for n, r in metrics["parameters"].items()
                 ],
                 title=f"Task II ({model.name}): marginals of the truth, the {t.estimate} estimate and the prior "

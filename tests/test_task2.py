@@ -14,7 +14,7 @@ from components.core.config import parse_params
 from components.core.seeding import rng
 from components.domains.absolute import Domain
 from components.domains.distances import energy_distance_sq, marginal_hdr, wasserstein_1d
-from components.domains.task2 import render_bag, task2_metrics, true_distribution, width_floor
+from components.domains.task2 import reference_draws, render_bag, task2_metrics, true_distribution, width_floor
 from tests.conftest import micro_params
 from tests.test_domain import GaussianPosterior
 
@@ -123,6 +123,28 @@ def test_width_floor_grows_with_the_posteriors_width():
         assert r["1"][name] > r["0.8"][name] > r["0.6"][name] > r0, name
         assert broad["posterior_sd_median"][name] == pytest.approx(8.0, rel=0.05)
         assert sharp["posterior_sd_median"][name] < 1e-5
+
+
+def test_calibrated_floor_is_the_distance_of_a_mixture_of_exact_posteriors():
+    """x = θ + σε with the exact (flat-prior) posterior 𝒩(x, σ²): the mixture of the bag's posteriors is the bag's
+    weather blurred twice, once by where each image puts its posterior and once by its width. The ``calibrated``
+    floor, built from the posteriors' draws and the true θ alone, gives the mixture's own W₁ ratio, and the floor
+    with each posterior moved onto its truth (no scatter) is clearly below it."""
+    params = _params()
+    theta = true_distribution(params).sample(3000, rng(4, "test", "task2", "calibrated"))
+    sigma = 6.0
+    x = theta + sigma * rng(4, "test", "task2", "noise").standard_normal(theta.shape)
+    posterior = GaussianPosterior(sigma)
+    floor = width_floor(posterior, x, theta, params)
+    truth, prior = reference_draws(params)
+    box = params.box
+    mixture = np.clip(posterior.sample(x, 64, 5), box.low, box.high).reshape(-1, theta.shape[1])
+    ratios = dict(zip(box.names, wasserstein_1d(mixture, truth) / wasserstein_1d(prior, truth), strict=True))
+    for name in ("fog_density", "precipitation"):
+        estimate = ratios[name]
+        assert floor["calibrated"]["1"][name] == pytest.approx(estimate, rel=0.1), name
+        assert floor["wasserstein_ratio"]["1"][name] < 0.85 * estimate, name
+        assert floor["calibrated"]["1"][name] > floor["calibrated"]["0.8"][name] > floor["calibrated"]["0.6"][name]
 
 
 def test_width_floor_refuses_draws_of_the_wrong_shape():

@@ -183,17 +183,26 @@ def task2_metrics(domain, params: Params, model_name: str) -> tuple[dict, np.nda
 
 
 def width_floor(posterior, contexts: np.ndarray, theta: np.ndarray, params: Params) -> dict:
-    """What the posteriors' widths alone allow: the W₁ ratios (estimate/prior, per parameter) of the mixture whose
-    image i contributes θᵢ + s·(draw − median of its draws), clipped to the box, for each s of
-    ``task2.width_floor.scales`` — no bias left, the spread scaled by s (s = 1: the posteriors' own widths).
+    """What the posteriors' widths alone allow: the W₁ ratios (estimate/prior, per parameter) of two mixtures built
+    from each image's posterior draws, clipped to the box, for each s of ``task2.width_floor.scales`` (s = 1: the
+    posteriors' own widths):
+
+    * ``wasserstein_ratio``: image i contributes θᵢ + s·(draw − median of its draws) — each posterior moved onto its
+      truth, its spread scaled by s;
+    * ``calibrated``: image i contributes θᵢ − s·(draw′ − median) + s·(draw − median), draw′ an independent draw of
+      the same posterior — what a perfectly calibrated posterior of that shape gives: the truth is distributed like a
+      draw of it, so its median misses the truth by one of its own deviations, and the mixture of such posteriors is
+      the bag's weather blurred twice (the same ratio as the estimate's means the estimate's distance is all width,
+      none of it bias).
 
     Arguments:
         posterior: ``sample(contexts, n, seed) → (N, n, d)`` draws in physical units (a registry model's
             ``posterior.on_context()``).
         contexts: the bag's ``(N, …)`` contexts; theta: their true weather ``(N, d)``.
 
-    Returns ``{"draws", "wasserstein_ratio": {f"{s:g}": {parameter: ratio}}, "posterior_sd_median": {parameter: the
-    median over images of the posterior standard deviation, physical units}}``; the truth's and the prior's draws are
+    Returns ``{"draws", "wasserstein_ratio": {f"{s:g}": {parameter: ratio}}, "calibrated": {f"{s:g}": {parameter:
+    ratio}}, "posterior_sd_median": {parameter: the median over images of the posterior standard deviation, physical
+    units}}``; the truth's and the prior's draws are
     :func:`reference_draws`, as for :func:`task2_metrics`, so ``s`` → 0 leaves the bag's own sampling distance.
     """
     c, box = params.task2.width_floor, params.box
@@ -203,16 +212,26 @@ def width_floor(posterior, contexts: np.ndarray, theta: np.ndarray, params: Para
         raise ValueError(
             f"posterior draws have shape {draws.shape}, expected {(theta.shape[0], c.draws, theta.shape[1])}"
         )
-    spread = draws - np.median(draws, axis=1, keepdims=True)
+    median = np.median(draws, axis=1, keepdims=True)
+    spread = draws - median
+    # independent draws of the same posteriors (their own stream): where a calibrated posterior's median would lie
+    again = np.asarray(posterior.sample(contexts, c.draws, seeding.derive_seed(params.seed, "task2", "width-floor", 2)))
+    if again.shape != draws.shape:
+        raise ValueError(f"posterior draws have shape {again.shape}, expected {draws.shape}")
+    miss = again - median
     truth, prior = reference_draws(params)
     w_prior = wasserstein_1d(prior, truth)
-    ratios = {}
-    for scale in c.scales:
-        moved = np.clip(theta[:, None, :] + scale * spread, box.low, box.high).reshape(-1, theta.shape[1])
-        ratios[f"{scale:g}"] = dict(zip(box.names, (wasserstein_1d(moved, truth) / w_prior).tolist(), strict=True))
+
+    def ratio(points: np.ndarray) -> dict[str, float]:
+        moved = np.clip(points, box.low, box.high).reshape(-1, theta.shape[1])
+        return dict(zip(box.names, (wasserstein_1d(moved, truth) / w_prior).tolist(), strict=True))
+
+    ratios = {f"{s:g}": ratio(theta[:, None, :] + s * spread) for s in c.scales}
+    calibrated = {f"{s:g}": ratio(theta[:, None, :] - s * miss + s * spread) for s in c.scales}
     sd = np.median(draws.std(axis=1), axis=0)
     return {
         "draws": c.draws,
         "wasserstein_ratio": ratios,
+        "calibrated": calibrated,
         "posterior_sd_median": dict(zip(box.names, sd.tolist(), strict=True)),
     }

@@ -29,7 +29,7 @@ from components import plots
 from components.core.files import atomic_write_bytes
 from components.domains.sweep import Experiment, NoiseSweep, experiments_by_eta
 from components.domains.task3 import DETECTED, build_sweep, eta_rows, eta_series, roc_rows, task3_metrics
-from components.evaluate.diagnostics import roc_curve
+from components.evaluate.diagnostics import auc_interval, roc_curve
 from components.export.lookup import load_registered, read_champion
 from flows import tracking
 from flows.stage import open_stage, parse_stage_args
@@ -71,12 +71,14 @@ def _plots(plot_dir: Path, kind: str, experiments: list[Experiment], threshold: 
     if threshold is not None:
         fig.axes[0].axhline(threshold, color="tab:red", linestyle="--", linewidth=1)
     files.append(plots.save_figure(fig, plot_dir / f"relative-gap-{kind}.png"))
+    curves = {eta: roc_curve(rel[0.0], scores) for eta, scores in rel.items() if eta > 0}
     files.append(
         plots.save_figure(
             plots.roc_curves(
-                {eta: roc_curve(rel[0.0], scores) for eta, scores in rel.items() if eta > 0},
+                curves,
                 score_name="δ / mean b²",
                 title=f"Out-of-ODD detection ({which})",
+                intervals={eta: auc_interval(c[2], rel[0.0].size, rel[eta].size) for eta, c in curves.items()},
             ),
             plot_dir / f"roc-{kind}.png",
         )
@@ -84,12 +86,20 @@ def _plots(plot_dir: Path, kind: str, experiments: list[Experiment], threshold: 
     return files
 
 
+def _auc_text(row: dict, kind: str) -> str:
+    """``"0.82 [0.69, 0.90]"``: a per-η row's AUC of ``kind`` targets with its 95 % interval (``"n/a"`` without one)."""
+    if row.get(f"auc_{kind}") is None:
+        return "n/a"
+    return f"{row[f'auc_{kind}']:.2f} [{row[f'auc_ci_low_{kind}']:.2f}, {row[f'auc_ci_high_{kind}']:.2f}]"
+
+
 def _description(metrics: dict, kind: str) -> str:
     """The Task III run's description: its headline figures."""
     odd, eta = metrics["odd"]["false_alarms_new_seeds"], metrics["eta"]
-    aucs = ", ".join(f"η={k}: {v[f'auc_{kind}']:.2f}" for k, v in eta.items() if v.get(f"auc_{kind}") is not None)
+    aucs = ", ".join(f"η={k}: {_auc_text(v, kind)}" for k, v in eta.items() if v.get(f"auc_{kind}") is not None)
     return (
-        f"Task III with {metrics['model']}: out-of-ODD detection AUC ({kind} targets) {aucs}. Median d_E at η=0: "
+        f"Task III with {metrics['model']}: out-of-ODD detection AUC ({kind} targets; 95 % intervals) {aucs}. "
+        f"Median d_E at η=0: "
         f"{eta['0'][f'd_e_median_{kind}']:.3f} ({kind}), {eta['0']['d_e_median_paper']:.3f} (paper). False alarms on new "
         f"in-ODD targets: {odd['flagged']} of {odd['n']} ({odd['rate']:.3f}, 95 % interval [{odd['ci_low']:.3f}, "
         f"{odd['ci_high']:.3f}])."
@@ -167,7 +177,7 @@ def task3(params_path: str = "params.yaml") -> dict:
         seconds,
         metrics["eta"]["0"]["d_e_median_paper"],
         calibrated_on,
-        metrics["eta"].get("0.1", {}).get(f"auc_{calibrated_on}"),
+        _auc_text(metrics["eta"].get("0.1", {}), calibrated_on),
         detector.threshold,
         t.false_alarm_rate,
         odd["flagged"],

@@ -50,6 +50,14 @@ def test_in_odd_weights_are_recovered_and_out_of_odd_targets_are_detected(sweep)
     assert set(summary) == {"0", "0.3", "1"} and "auc" not in summary["0"]
     assert summary["0.3"]["auc"] > 0.99 and summary["1"]["auc"] == 1.0
     assert summary["1"]["flagged_rate"] == 1.0
+    # 20 against 20 targets, every one separated: the AUC is 1, its 95 % interval is not (Newcombe: ~[0.91, 1])
+    assert summary["1"]["auc_ci_high"] == 1.0 and 0.85 < summary["1"]["auc_ci_low"] < 0.95
+    assert summary["1"]["auc_gap_ci_low"] <= summary["1"]["auc_gap"] <= summary["1"]["auc_gap_ci_high"]
+    # 20 of 20 flagged: Clopper–Pearson's exact lower limit (0.025)^(1/20)
+    assert (
+        summary["1"]["flagged_rate_ci_low"] == pytest.approx(0.025 ** (1 / 20))
+        and summary["1"]["flagged_rate_ci_high"] == 1.0
+    )
     assert summary["0"]["d_e_median"] < 0.02 < summary["1"]["d_e_median"]
     rel = experiments_by_eta(experiments, "relative_gap")
     assert list(rel) == [0.0, 0.3, 1.0] and rel[0.0].shape == (20,)

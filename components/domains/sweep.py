@@ -51,7 +51,7 @@ from components.domains.relative import (
     relate,
     simplex_distance,
 )
-from components.evaluate.diagnostics import roc_curve
+from components.evaluate.diagnostics import auc_interval, roc_curve
 
 __all__ = ["SMOOTHINGS", "Experiment", "FalseAlarmCheck", "NoiseSweep", "summarize_sweep", "experiments_by_eta"]
 
@@ -276,8 +276,9 @@ class NoiseSweep:
 
 def summarize_sweep(experiments: Sequence[Experiment], detector: OddDetector) -> dict[str, dict[str, float]]:
     """Per η (keys formatted ``"0.1"``): medians of d_E, δ, the chance baseline δ and the relative gaps; the share
-    flagged out of the ODD at the detector's threshold; and (η > 0) the AUC of the relative gap and of δ against the
-    η = 0 experiments."""
+    flagged out of the ODD at the detector's threshold, with its Clopper–Pearson interval; and (η > 0) the AUC of the
+    relative gap and of δ against the η = 0 experiments, each with its interval
+    (:func:`~components.evaluate.diagnostics.auc_interval`); intervals at :data:`CONFIDENCE`."""
     by_eta: dict[float, list[Experiment]] = {}
     for e in experiments:
         by_eta.setdefault(e.eta, []).append(e)
@@ -296,12 +297,20 @@ def summarize_sweep(experiments: Sequence[Experiment], detector: OddDetector) ->
             "baseline_gap_median": float(np.median([e.baseline_gap for e in es])),
             "relative_gap_median": float(np.median(rel)),
             "baseline_relative_gap_median": float(np.median([e.baseline_relative_gap for e in es])),
-            "flagged_rate": float(np.mean(detector.decide_many(rel))),
             "repetitions": len(es),
         }
+        flagged = int(np.sum(detector.decide_many(rel)))
+        ci = binomtest(flagged, len(es)).proportion_ci(confidence_level=CONFIDENCE, method="exact")
+        row |= {
+            "flagged_rate": flagged / len(es),
+            "flagged_rate_ci_low": float(ci.low),
+            "flagged_rate_ci_high": float(ci.high),
+        }
         if eta > 0:
-            row["auc"] = roc_curve(ref_rel, rel)[2]
-            row["auc_gap"] = roc_curve(ref_gap, gap)[2]
+            for name, ref, scores in (("auc", ref_rel, rel), ("auc_gap", ref_gap, gap)):
+                auc = roc_curve(ref, scores)[2]
+                low, high = auc_interval(auc, ref.size, scores.size, CONFIDENCE)
+                row |= {name: auc, f"{name}_ci_low": low, f"{name}_ci_high": high}
         out[f"{eta:g}"] = row
     return out
 

@@ -57,7 +57,8 @@ __all__ = [
 
 #: the target kinds: the paper's (in-ODD part = the sources' own images) and fresh ones (other images of their weather)
 KINDS = ("paper", "fresh")
-#: the per-η figures of each kind (medians over the repetitions, the share flagged, AUCs against η = 0)
+#: the per-η figures of each kind (medians over the repetitions, the share flagged, AUCs against η = 0; the last two
+#: with their 95 % intervals)
 PER_ETA = (
     "d_e_median",
     "gap_median",
@@ -65,8 +66,14 @@ PER_ETA = (
     "relative_gap_median",
     "baseline_relative_gap_median",
     "flagged_rate",
+    "flagged_rate_ci_low",
+    "flagged_rate_ci_high",
     "auc",
+    "auc_ci_low",
+    "auc_ci_high",
     "auc_gap",
+    "auc_gap_ci_low",
+    "auc_gap_ci_high",
 )
 
 

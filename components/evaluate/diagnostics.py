@@ -34,6 +34,7 @@ __all__ = [
     "coverage_error",
     "hdr_mass",
     "roc_curve",
+    "auc_interval",
     "DEFAULT_LEVELS",
 ]
 
@@ -238,3 +239,41 @@ def roc_curve(negatives: object, positives: object) -> tuple[np.ndarray, np.ndar
     fpr = np.r_[0.0, fp / neg.size]
     auc = float(np.sum(np.diff(fpr) * (tpr[1:] + tpr[:-1]) / 2))
     return fpr, tpr, auc
+
+
+def auc_interval(auc: float, negatives: int, positives: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Confidence interval of an AUC (the Mann–Whitney probability θ = P(score⁺ > score⁻)) from ``negatives`` and
+    ``positives`` cases: Newcombe's hybrid score interval (Newcombe 2006, *Statistics in Medicine* 25:559, method 5).
+
+    The limits are the two solutions θ of (θ̂ − θ)² = z² V(θ), with Hanley and McNeil's variance written as a function
+    of θ and both sample sizes replaced by N* = (m + n)/2 − 1::
+
+        V(θ) = θ(1 − θ) / (m n) · [1 + (N* − 1) ((1 − θ)/(2 − θ) + θ/(1 + θ))]
+
+    Unlike the Wald or DeLong intervals it does not collapse to a point at θ̂ = 1 (30 against 30 cases, every one
+    separated: [0.935, 1]). Checked by simulation on binormal scores (``tests/test_diagnostics.py``): coverage
+    0.94–0.98 at 95 % for θ from 0.6 to 0.99 and 15–200 cases per class.
+
+    Returns ``(low, high)`` within [0, 1]; ``ValueError`` for an AUC outside [0, 1], fewer than one case of a class or
+    a confidence outside (0, 1).
+    """
+    from scipy import optimize, stats
+
+    if not 0.0 <= float(auc) <= 1.0:
+        raise ValueError(f"auc must lie in [0, 1], got {auc!r}")
+    for name, count in (("negatives", negatives), ("positives", positives)):
+        if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1:
+            raise ValueError(f"{name} must be a positive number of cases, got {count!r}")
+    if not 0.0 < float(confidence) < 1.0:
+        raise ValueError(f"confidence must lie in (0, 1), got {confidence!r}")
+    a, m, n = float(auc), int(negatives), int(positives)
+    z2 = float(stats.norm.ppf(0.5 + float(confidence) / 2)) ** 2
+    k = (m + n) / 2.0 - 2.0  # N* − 1
+
+    def excess(t: float) -> float:  # (θ̂ − θ)² − z² V(θ): positive outside the interval
+        return (a - t) ** 2 - z2 * t * (1.0 - t) / (m * n) * (1.0 + k * ((1.0 - t) / (2.0 - t) + t / (1.0 + t)))
+
+    eps = 1e-12  # the roots at θ̂ = 0 or 1 themselves (V = 0 there) are not limits
+    low = optimize.brentq(excess, 0.0, a - eps) if a > eps and excess(0.0) > 0 else 0.0
+    high = optimize.brentq(excess, a + eps, 1.0) if a < 1.0 - eps and excess(1.0) > 0 else 1.0
+    return float(low), float(high)

@@ -78,6 +78,7 @@ def roc_curves(
     curves: Mapping[float, tuple[object, object, float]],
     score_name: str = "δ",
     title: str = "Out-of-ODD detection",
+    intervals: Mapping[float, tuple[float, float]] | None = None,
 ) -> Figure:
     """ROC curves of "out of the ODD when the score ≥ s", one per level, AUC in the legend.
 
@@ -85,7 +86,11 @@ def roc_curves(
         curves: level → ``(fpr, tpr, auc)`` of the out-of-ODD targets at that level against the in-ODD ones
             (:func:`components.evaluate.diagnostics.roc_curve`; Task III: δ at each η > 0 against δ at η = 0).
         score_name: the score's symbol in the title.
+        intervals: optional level → ``(low, high)``, each AUC's confidence interval
+            (:func:`components.evaluate.diagnostics.auc_interval`), shown in the legend; its levels must be the curves'.
     """
+    if intervals is not None and set(intervals) != set(curves):
+        raise ValueError(f"intervals must have the curves' levels {sorted(curves)}, got {sorted(intervals)}")
     if not isinstance(curves, Mapping) or not curves:
         raise ValueError("curves must be a non-empty mapping level → (fpr, tpr, auc)")
     checked = {}
@@ -110,7 +115,9 @@ def roc_curves(
             drawstyle="default",
             color=cmap(0.9 * k / cmap_n),
             linewidth=1.6,
-            label=f"η = {_level_label(level)}  (AUC {auc:.3f})",
+            label=f"η = {_level_label(level)}  (AUC {auc:.3f}"
+            + ("" if intervals is None else " [{:.2f}, {:.2f}]".format(*intervals[level]))
+            + ")",
         )
     ax.set_xlim(-0.01, 1.01)
     ax.set_ylim(-0.01, 1.01)

@@ -35,15 +35,24 @@ def render_bag(params_path: str) -> tuple[np.ndarray, np.ndarray]:
     return task2_.render_bag(params, make_simulator(params.simulator))
 
 
-def _note(row: dict, floor: float, calibrated: float) -> str:
+def _note(row: dict, floor: float, calibrated: float, interval: dict | None = None) -> str:
     """A parameter's panel title: W₁ estimate→truth against the prior's and their ratio, the ratios of the mixture of
     calibrated posteriors of the same widths (``calibrated``) and of the posteriors moved onto their truths (``floor``;
-    :func:`components.domains.task2.width_floor` at s = 1), the marginal HDR."""
+    :func:`components.domains.task2.width_floor` at s = 1), the marginal HDR; for a varying parameter (``interval``:
+    its row of ``width_floor.interval.mixture_minus_calibrated``) the mixture's ratio minus the calibrated one's with its
+    95 % interval."""
     unit = "°" if row["unit"] == "deg" else row["unit"]
     return (
         f"W₁ to the truth {row['wasserstein_estimate']:.3g} {unit} (prior {row['wasserstein_prior']:.3g} {unit}): "
         f"ratio {row['wasserstein_ratio']:.2f}\nthese widths, calibrated: {calibrated:.2f}; on the truths: {floor:.2f}\n"
-        f"HDR {row['hdr_width']:.3g} {unit} wide, holds {100 * row['true_mass_in_hdr']:.0f} % of the truth"
+        + (
+            ""
+            if interval is None
+            else "minus the calibrated: {:+.2f}, 95 % [{:+.2f}, {:+.2f}]\n".format(
+                interval["difference"], interval["low"], interval["high"]
+            )
+        )
+        + f"HDR {row['hdr_width']:.3g} {unit} wide, holds {100 * row['true_mass_in_hdr']:.0f} % of the truth"
     )
 
 
@@ -98,7 +107,14 @@ def task2(params_path: str = "params.yaml") -> dict:
                 prior,
                 box=params.box,
                 notes=[
-                    _note(r, floor["wasserstein_ratio"]["1"][n], floor["calibrated"]["1"][n])
+                    _note(
+                        r,
+                        floor["wasserstein_ratio"]["1"][n],
+                        floor["calibrated"]["1"][n],
+                        None
+                        if n not in floor["interval"]["mixture"]
+                        else floor["interval"]["mixture_minus_calibrated"][n],
+                    )
                     for n, r in metrics["parameters"].items()
                 ],
                 title=f"Task II ({model.name}): marginals of the truth, the {t.estimate} estimate and the prior "

@@ -261,6 +261,8 @@ def test_unknown_key_is_named():
         (lambda d: d["task2"]["fixed"].pop("cloudiness"), r"task2\.fixed: .*must give exactly"),
         (lambda d: d["task2"]["modes"][0].update(std=[0, 1]), r"task2\.modes\.0\.std"),
         (lambda d: d["task2"]["width_floor"].update(draws=1), r"task2\.width_floor\.draws: Input should be greater"),
+        (lambda d: d["task2"]["width_floor"].pop("bootstrap"), r"task2\.width_floor\.bootstrap: missing key"),
+        (lambda d: d["task2"]["width_floor"].update(bootstrap=10), r"task2\.width_floor\.bootstrap: Input should be"),
         (
             lambda d: d["task2"]["width_floor"].update(scales=[1.0, 0]),
             r"task2\.width_floor\.scales\.1: Input should be",

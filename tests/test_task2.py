@@ -130,7 +130,7 @@ def test_calibrated_floor_is_the_distance_of_a_mixture_of_exact_posteriors():
     weather blurred twice, once by where each image puts its posterior and once by its width. The ``calibrated``
     floor, built from the posteriors' draws and the true θ alone, gives the mixture's own W₁ ratio, and the floor
     with each posterior moved onto its truth (no scatter) is clearly below it."""
-    params = _params()
+    params = _params(width_floor={"draws": 64, "scales": [1.0, 0.8, 0.6], "bootstrap": 40})  # 3 000 images: fewer
     theta = true_distribution(params).sample(3000, rng(4, "test", "task2", "calibrated"))
     sigma = 6.0
     x = theta + sigma * rng(4, "test", "task2", "noise").standard_normal(theta.shape)
@@ -145,6 +145,28 @@ def test_calibrated_floor_is_the_distance_of_a_mixture_of_exact_posteriors():
         assert floor["calibrated"]["1"][name] == pytest.approx(estimate, rel=0.1), name
         assert floor["wasserstein_ratio"]["1"][name] < 0.85 * estimate, name
         assert floor["calibrated"]["1"][name] > floor["calibrated"]["0.8"][name] > floor["calibrated"]["0.6"][name]
+        # the mixture drawn by the floor is the estimate, and its difference from the calibrated mixture has an
+        # interval that holds 0 (exact posteriors: no bias)
+        interval = floor["interval"]
+        assert interval["mixture"][name] == pytest.approx(estimate, rel=0.05)
+        difference = interval["mixture_minus_calibrated"][name]
+        assert difference["difference"] == pytest.approx(interval["mixture"][name] - interval["calibrated"][name])
+        assert difference["low"] < 0 < difference["high"], difference
+    assert set(floor["interval"]["mixture"]) == {"fog_density", "precipitation"}  # the bag's varying parameters
+
+
+def test_width_floor_interval_tells_a_biased_estimate_from_a_calibrated_one():
+    """Posteriors shifted by +8 units in precipitation (a bias of one posterior sd): the estimate's mixture is
+    farther from the truth than calibrated posteriors of its widths would be, and the interval of the difference
+    excludes 0; fog, unbiased, keeps 0 inside."""
+    params = _params(width_floor={"draws": 64, "scales": [1.0, 0.8, 0.6], "bootstrap": 100})
+    theta = true_distribution(params).sample(1000, rng(5, "test", "task2", "biased"))
+    sigma = 6.0
+    x = theta + sigma * rng(5, "test", "task2", "noise").standard_normal(theta.shape)
+    x[:, params.box.names.index("precipitation")] += 8.0
+    difference = width_floor(GaussianPosterior(sigma), x, theta, params)["interval"]["mixture_minus_calibrated"]
+    assert difference["precipitation"]["low"] > 0, difference["precipitation"]
+    assert difference["fog_density"]["low"] < 0 < difference["fog_density"]["high"], difference["fog_density"]
 
 
 def test_width_floor_refuses_draws_of_the_wrong_shape():

@@ -316,10 +316,13 @@ class DeconvolutionConfig(_Section):
 
 class WidthFloorConfig(_Section):
     """Task II's width floor (:func:`components.domains.task2.width_floor`): the mixture with each image's posterior
-    moved onto the image's true θ, its spread scaled by each of ``scales``."""
+    moved onto the image's true θ, and the mixture of calibrated posteriors of the same shape, their spread scaled by
+    each of ``scales``; for the varying parameters, the two mixtures' difference with its bootstrap interval."""
 
     #: posterior draws per bag image
     draws: Annotated[int, Field(ge=2)]
+    #: bootstrap replicates (resampled bag images) behind the 95 % interval of the mixture's ratio minus the calibrated
+    bootstrap: Annotated[int, Field(ge=40)]
     #: the spread's scale factors s (1 = the posteriors' own widths, required: the report and its plot show it)
     scales: tuple[Annotated[float, Field(gt=0)], ...] = Field(min_length=1)
 

@@ -111,9 +111,7 @@ def task2(params_path: str = "params.yaml") -> dict:
                         r,
                         floor["wasserstein_ratio"]["1"][n],
                         floor["calibrated"]["1"][n],
-                        None
-                        if n not in floor["interval"]["mixture"]
-                        else floor["interval"]["mixture_minus_calibrated"][n],
+                        floor["interval"]["mixture_minus_calibrated"].get(n),
                     )
                     for n, r in metrics["parameters"].items()
                 ],

@@ -29,7 +29,7 @@ from components import plots
 from components.core.files import atomic_write_bytes
 from components.domains.sweep import Experiment, NoiseSweep, experiments_by_eta
 from components.domains.task3 import DETECTED, build_sweep, eta_rows, eta_series, roc_rows, task3_metrics
-from components.evaluate.diagnostics import auc_interval, roc_curve
+from components.evaluate.diagnostics import roc_curve
 from components.export.lookup import load_registered, read_champion
 from flows import tracking
 from flows.stage import open_stage, parse_stage_args
@@ -42,9 +42,11 @@ def run_level(sweep: NoiseSweep, eta: float, repetitions: int, seed: int, fresh:
     return [sweep.run(eta, r, seed, fresh) for r in range(repetitions)]
 
 
-def _plots(plot_dir: Path, kind: str, experiments: list[Experiment], threshold: float | None, model: str) -> list[Path]:
+def _plots(
+    plot_dir: Path, kind: str, experiments: list[Experiment], threshold: float | None, model: str, per_eta: dict
+) -> list[Path]:
     """Box plots of d_E, δ and the relative gap (with the ODD threshold when calibrated on this kind) and the ROC
-    curves, for one target kind."""
+    curves, their AUCs' intervals from ``per_eta`` (``metrics["eta"]``), for one target kind."""
     which = _TITLES[kind]
     d_e = experiments_by_eta(experiments, "d_e")
     files = [
@@ -78,7 +80,10 @@ def _plots(plot_dir: Path, kind: str, experiments: list[Experiment], threshold: 
                 curves,
                 score_name="δ / mean b²",
                 title=f"Out-of-ODD detection ({which})",
-                intervals={eta: auc_interval(c[2], rel[0.0].size, rel[eta].size) for eta, c in curves.items()},
+                intervals={
+                    eta: (per_eta[f"{eta:g}"][f"auc_ci_low_{kind}"], per_eta[f"{eta:g}"][f"auc_ci_high_{kind}"])
+                    for eta in curves
+                },
             ),
             plot_dir / f"roc-{kind}.png",
         )
@@ -144,7 +149,8 @@ def task3(params_path: str = "params.yaml") -> dict:
     atomic_write_bytes(out / "experiments.json", json.dumps(records).encode())
     figures = []
     for kind, es in experiments.items():
-        figures += _plots(out / "plots", kind, es, detector.threshold if kind == calibrated_on else None, model_name)
+        threshold = detector.threshold if kind == calibrated_on else None
+        figures += _plots(out / "plots", kind, es, threshold, model_name, metrics["eta"])
 
     tracking.log_domain_task(
         stage.paths.root,

@@ -106,7 +106,9 @@ def test_dvc_repro_pipeline_in_a_temp_git_repo(micro_project, tmp_path, prefect_
     calibrated = task2["width_floor"]["calibrated"]  # calibrated posteriors of these widths: located a draw away
     assert set(calibrated) == set(floor) and all(v >= 0 for s in calibrated.values() for v in s.values())
     interval = task2["width_floor"]["interval"]  # the varying parameters: mixture minus calibrated, bootstrapped
-    assert set(interval["mixture"]) == {"fog_density", "precipitation"} and interval["replicates"] == 200
+    assert (
+        set(interval["mixture_minus_calibrated"]) == {"fog_density", "precipitation"} and interval["replicates"] == 200
+    )
     assert all(r["low"] <= r["difference"] <= r["high"] for r in interval["mixture_minus_calibrated"].values())
     # the micro profile scores the deconvolved estimate: the mixture's figures beside it, the EM steps chosen
     curve = task2["deconvolution"]["held_out_log_likelihood"]

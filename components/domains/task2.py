@@ -194,10 +194,10 @@ def width_floor(posterior, contexts: np.ndarray, theta: np.ndarray, params: Para
       draw of it, so its median misses the truth by one of its own deviations, and the mixture of such posteriors is
       the bag's weather blurred twice (the same ratio as the estimate's means the estimate's distance is all width,
       none of it bias);
-    * ``interval``, for the parameters that vary in the bag (not in ``task2.fixed``): the ratios of the mixture of the
-      posteriors as drawn (64 draws per image by default, θ unused) and of the calibrated one at s = 1, and their
-      difference with its 95 % percentile-bootstrap interval over the bag's images (``task2.width_floor.bootstrap``
-      replicates resampling the same images for both): an interval that holds 0 says
+    * ``mixture``: the posteriors as drawn (θ unused) — the estimate's ratio from these draws;
+    * ``interval``, for the parameters that vary in the bag (not in ``task2.fixed``): ``mixture`` minus
+      ``calibrated`` at s = 1 with its 95 % percentile-bootstrap interval over the bag's images
+      (``task2.width_floor.bootstrap`` replicates resampling the same images for both): an interval that holds 0 says
       the estimate is as far from the truth as calibrated posteriors of its widths would be. (A single distance gets
       no such interval: resampling images adds noise of its own that shifts its bootstrap distribution up; the
       paired difference cancels most of it.)
@@ -208,9 +208,9 @@ def width_floor(posterior, contexts: np.ndarray, theta: np.ndarray, params: Para
         contexts: the bag's ``(N, …)`` contexts; theta: their true weather ``(N, d)``.
 
     Returns ``{"draws", "wasserstein_ratio": {f"{s:g}": {parameter: ratio}}, "calibrated": {f"{s:g}": {parameter:
-    ratio}}, "interval": {"replicates", "confidence", "mixture" | "calibrated": {parameter: ratio},
-    "mixture_minus_calibrated": {parameter: {"difference", "low", "high"}}}, "posterior_sd_median": {parameter: the median over images of the posterior
-    standard deviation, physical units}}``; the truth's and the prior's draws are
+    ratio}}, "mixture": {parameter: ratio}, "interval": {"replicates", "confidence", "mixture_minus_calibrated":
+    {parameter: {"difference", "low", "high"}}}, "posterior_sd_median": {parameter: the median over images of the
+    posterior standard deviation, physical units}}``; the truth's and the prior's draws are
     :func:`reference_draws`, as for :func:`task2_metrics`, so ``s`` → 0 leaves the bag's own sampling distance.
     """
     c, box = params.task2.width_floor, params.box
@@ -236,54 +236,55 @@ def width_floor(posterior, contexts: np.ndarray, theta: np.ndarray, params: Para
 
     ratios = {f"{s:g}": ratio(theta[:, None, :] + s * spread) for s in c.scales}
     calibrated = {f"{s:g}": ratio(theta[:, None, :] - s * miss + s * spread) for s in c.scales}
+    mixture = ratio(draws)
     free = [k for k, name in enumerate(box.names) if name not in params.task2.fixed]
-    mixtures = {"mixture": draws, "calibrated": theta[:, None, :] - miss + spread}
-    interval = _bootstrap_ratios(mixtures, free, truth, prior, params, c.bootstrap)
+    low, high = _difference_interval(draws, theta[:, None, :] - miss + spread, free, truth, prior, params, c.bootstrap)
     sd = np.median(draws.std(axis=1), axis=0)
     return {
         "draws": c.draws,
         "wasserstein_ratio": ratios,
         "calibrated": calibrated,
-        "interval": interval,
+        "mixture": mixture,
+        "interval": {
+            "replicates": c.bootstrap,
+            "confidence": 0.95,
+            "mixture_minus_calibrated": {
+                box.names[k]: {
+                    "difference": mixture[box.names[k]] - calibrated["1"][box.names[k]],
+                    "low": float(low[j]),
+                    "high": float(high[j]),
+                }
+                for j, k in enumerate(free)
+            },
+        },
         "posterior_sd_median": dict(zip(box.names, sd.tolist(), strict=True)),
     }
 
 
-def _bootstrap_ratios(
-    mixtures: dict[str, np.ndarray],
+def _difference_interval(
+    first: np.ndarray,
+    second: np.ndarray,
     free: list[int],
     truth: np.ndarray,
     prior: np.ndarray,
     params: Params,
     replicates: int,
-) -> dict:
-    """:func:`width_floor`'s ``interval``: for each of the two mixtures ``(N, n, d)`` (image i's n points, clipped to
-    the box) the W₁ ratio to the truth per parameter of ``free``, and the first minus the second with its 95 %
-    percentile-bootstrap interval from ``replicates`` resamplings of the N images (shared by the mixtures; the truth's
-    draws, ``task2.samples`` of a known distribution, are kept)."""
-    box, (a, b) = params.box, mixtures
-    names = [box.names[k] for k in free]
-    low, high = box.low[free], box.high[free]
-    flat = {k: np.clip(m[..., free], low, high) for k, m in mixtures.items()}
-
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`width_floor`'s 95 % percentile-bootstrap interval of the W₁ ratio (to the truth, over the prior's) of the
+    mixture ``first (N, n, d)`` (image i's n points, clipped to the box) minus that of ``second``, per parameter of
+    ``free``: ``replicates`` resamplings of the N images, shared by the two mixtures (the truth's draws,
+    ``task2.samples`` of a known distribution, are kept) → ``(low, high)``, each ``(len(free),)``."""
+    box = params.box
+    flat = [np.clip(m[..., free], box.low[free], box.high[free]) for m in (first, second)]
     t = truth[:, free]
     w = wasserstein_1d(prior[:, free], t)
 
-    def ratios(images: np.ndarray) -> np.ndarray:  # (2, len(free)): W₁ / the prior's
-        return np.stack([wasserstein_1d(flat[k][images].reshape(-1, len(free)), t) / w for k in (a, b)])
+    def difference(images: np.ndarray) -> np.ndarray:
+        one, two = (wasserstein_1d(m[images].reshape(-1, len(free)), t) / w for m in flat)
+        return one - two
 
-    n = next(iter(mixtures.values())).shape[0]
-    point = ratios(np.arange(n))
+    n = first.shape[0]
     r = seeding.rng(params.seed, "task2", "width-floor", "bootstrap")
-    reps = np.stack([ratios(r.integers(n, size=n)) for _ in range(replicates)])
-    lo, hi = np.quantile(reps[:, 0] - reps[:, 1], [0.025, 0.975], axis=0)
-    return {
-        "replicates": replicates,
-        "confidence": 0.95,
-        a: dict(zip(names, point[0].tolist(), strict=True)),
-        b: dict(zip(names, point[1].tolist(), strict=True)),
-        f"{a}_minus_{b}": {
-            name: {"difference": float(point[0, j] - point[1, j]), "low": float(lo[j]), "high": float(hi[j])}
-            for j, name in enumerate(names)
-        },
-    }
+    reps = np.stack([difference(r.integers(n, size=n)) for _ in range(replicates)])
+    low, high = np.quantile(reps, [0.025, 0.975], axis=0)
+    return low, high

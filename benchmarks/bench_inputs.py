@@ -16,6 +16,10 @@ cache, uniform random inputs of the cnn's shape (``--synthetic``). Prints a tabl
 
 from __future__ import annotations
 
+# isort: off
+import components  # noqa: F401  first, before numpy: it pins numpy's SIMD kernels (the pipeline's images)
+
+# isort: on
 import argparse
 import json
 import statistics

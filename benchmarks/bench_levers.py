@@ -48,6 +48,10 @@ and one JSON line with the machine's details.
 
 from __future__ import annotations
 
+# isort: off
+import components  # noqa: F401  first, before numpy: it pins numpy's SIMD kernels (the pipeline's images)
+
+# isort: on
 import argparse
 import dataclasses
 import json

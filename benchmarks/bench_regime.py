@@ -15,6 +15,10 @@ Prints a table and one JSON line with the figures and the machine's details.
 
 from __future__ import annotations
 
+# isort: off
+import components  # noqa: F401  first, before numpy: it pins numpy's SIMD kernels (the pipeline's images)
+
+# isort: on
 import argparse
 import dataclasses
 import json

@@ -18,6 +18,10 @@ one JSON line (``{"benchmark": "runtime", ...}``) with machine information.
 
 from __future__ import annotations
 
+# isort: off
+import components  # noqa: F401  first, before numpy: it pins numpy's SIMD kernels (the pipeline's images)
+
+# isort: on
 import argparse
 import json
 import statistics

@@ -70,6 +70,10 @@ machine (load average before and after) and all figures, per-epoch curves includ
 
 from __future__ import annotations
 
+# isort: off
+import components  # noqa: F401  first, before numpy: it pins numpy's SIMD kernels (the pipeline's images)
+
+# isort: on
 import argparse
 import json
 import math

@@ -43,6 +43,10 @@ the training defaults (``steps-small``, adopted as ``train.scale_to``): BENCHMAR
 
 from __future__ import annotations
 
+# isort: off
+import components  # noqa: F401  first, before numpy: it pins numpy's SIMD kernels (the pipeline's images)
+
+# isort: on
 import argparse
 import json
 import math

@@ -27,6 +27,10 @@ true mass in the joint 95 % HDR, seconds) and one JSON line (``{"benchmark": "ta
 
 from __future__ import annotations
 
+# isort: off
+import components  # noqa: F401  first, before numpy: it pins numpy's SIMD kernels (the pipeline's images)
+
+# isort: on
 import argparse
 import json
 import math

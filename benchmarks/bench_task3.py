@@ -20,6 +20,10 @@ Prints a table and one JSON line (``{"benchmark": "task3", ...}``) with machine 
 
 from __future__ import annotations
 
+# isort: off
+import components  # noqa: F401  first, before numpy: it pins numpy's SIMD kernels (the pipeline's images)
+
+# isort: on
 import argparse
 import json
 import sys

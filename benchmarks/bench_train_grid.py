@@ -14,6 +14,10 @@ Prints each run's wall time, the medians and their ratio, and one JSON line with
 
 from __future__ import annotations
 
+# isort: off
+import components  # noqa: F401  first, before numpy: it pins numpy's SIMD kernels (the pipeline's images)
+
+# isort: on
 import argparse
 import json
 import os

@@ -8,6 +8,10 @@ normalized θ plus noise). Prints a table and one JSON line with the machine's d
 
 from __future__ import annotations
 
+# isort: off
+import components  # noqa: F401  first, before numpy: it pins numpy's SIMD kernels (the pipeline's images)
+
+# isort: on
 import argparse
 import json
 import os

@@ -286,3 +286,39 @@ def test_resolution_training_vary_draws_one_size_per_scene() -> None:
     assert images.shape == (2, 32, 32, 3)
     assert np.array_equal(images[0], ProceduralSimulator(32, 32).render(row, 5))
     assert np.array_equal(images[1], resize_area(ProceduralSimulator(48, 48).render(row, 6)[None], (32, 32))[0])
+
+
+def _first_third_party_import(path: Path) -> str | None:
+    """The top-level name of the first module-level import of a script that is neither the standard library nor
+    ``__future__``, or ``None``; ``benchmarks.machine`` (also imported as ``machine`` from the script's folder) is
+    standard library only."""
+    import ast
+
+    for node in ast.parse(path.read_text(), filename=str(path)).body:
+        if isinstance(node, ast.Import):
+            names = [alias.name.split(".")[0] for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names = [node.module.split(".")[0]]
+        else:
+            continue
+        for name in names:
+            if name not in sys.stdlib_module_names and name not in ("__future__", "benchmarks", "machine"):
+                return name
+    return None
+
+
+@pytest.mark.parametrize(
+    "script",
+    sorted(p.relative_to(ROOT).as_posix() for d in ("benchmarks", "scripts") for p in (ROOT / d).glob("*.py")),
+)
+def test_scripts_import_pidc_before_numpy(script: str) -> None:
+    """A script run as ``python benchmarks/x.py`` that uses pidc imports ``components`` (or ``flows``) before any
+    third-party module: importing pidc first pins numpy's SIMD kernels to the baseline, and the renderer refuses a
+    process that did not (``bench_task2`` did, and failed at its first render). Scripts that never import pidc
+    (the SBI problems) are free."""
+    path = ROOT / script
+    text = path.read_text()
+    if "from components" not in text and "import components" not in text and "from flows" not in text:
+        return
+    first = _first_third_party_import(path)
+    assert first in ("components", "flows"), f"{script}: imports {first} before components"

@@ -64,7 +64,9 @@ def marginal_histograms(
     """2×3 histograms of the 6 marginals of P̂(W | I = i), the HDR at ``level`` highlighted.
 
     Each bar is stacked: the density coming from samples inside the HDR {θ : p̂(θ | i) ≥ t_α} in a strong
-    colour, the rest in a light one (bars are probability densities per unit of the parameter, so the total
+    colour, the rest in a light one. The HDR is the joint, 6-D one (the paper's: the weathers whose density is
+    above t_α), so a bin of one marginal can hold draws inside and outside it; a marginal's own highest-density
+    interval (``pidc characterize``'s table) is another set (bars are probability densities per unit of the parameter, so the total
     area of a panel is the share of samples inside the box, ≈ 1). The ground truth θ* (``(6,)``) is a
     vertical line. Shapes as in :func:`marginal_hdr_histograms`.
     """
@@ -93,13 +95,14 @@ def marginal_histograms(
         ax.set_ylabel(f"density [1/{unit_symbol(PREDICTED[k])}]")
         ax.ticklabel_format(axis="y", style="sci", scilimits=(-2, 3))
     handles = [
-        Patch(color=HDR_COLOUR, label=f"in the {100 * level:.2f} % HDR"),
-        Patch(color=OUTSIDE_COLOUR, label="outside the HDR"),
+        Patch(color=HDR_COLOUR, label=f"draws in the joint {100 * level:.2f} % HDR"),
+        Patch(color=OUTSIDE_COLOUR, label="draws outside it"),
     ]
     if t is not None:
         handles.append(Patch(color=TRUTH_COLOUR, label="ground truth"))
     fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), frameon=False)
     fig.suptitle(
-        f"Marginals of the predicted weather distribution, highest-density region at {100 * level:.2f} % highlighted"
+        "Marginals of the predicted weather distribution\nin dark, the draws inside its joint "
+        f"{100 * level:.2f} % highest-density region (all six parameters at once)"
     )
     return fig

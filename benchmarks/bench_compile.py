@@ -67,10 +67,14 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--size", type=int, default=20000, help="training images (synthetic)")
     p.add_argument("--features", type=int, default=273, help="input features (the cues: 273)")
-    p.add_argument("--epochs", type=int, default=4)
+    p.add_argument("--epochs", type=int, default=4, help="≥ 2: the first compiles, the others are timed")
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--worker", choices=["eager", "cold", "warm"], help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.epochs < 2:
+        p.error(f"--epochs must be at least 2 (the first epoch compiles; the others are timed), got {args.epochs}")
+    if args.repeats < 1 or args.size < 1 or args.threads < 1:
+        p.error("--repeats, --size and --threads must be at least 1")
     if args.worker:
         worker(args)
         return

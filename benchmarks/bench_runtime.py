@@ -9,7 +9,7 @@ affects them alike. The model is exported to a temporary folder first (not timed
 density graphs, instead of the drawing member's from its inverse pass and the K − 1 others'
 (:func:`draw_with_every_density`).
 
-    .venv/bin/python benchmarks/bench_runtime.py --model models/cues-10000/model.pt --threads 1
+    .venv/bin/python benchmarks/bench_runtime.py --model models/cues-50000/model.pt --threads 1
 
 Inputs are cached features (``--features``, an ``.npy`` of shape ``(N, F)``; default the first test shard of
 ``features/<backbone>/`` when present) or random features spread like the training set's. Prints a table and
@@ -142,7 +142,7 @@ def dense_peak_flops(threads: int, size: int = 1024, repeats: int = 5) -> float:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", type=Path, default=ROOT / "models" / "cues-10000" / "model.pt")
+    parser.add_argument("--model", type=Path, default=ROOT / "models" / "cues-50000" / "model.pt")
     parser.add_argument("--features", type=Path, default=None, help="an .npy of cached features (N, F)")
     parser.add_argument("--samples", type=int, default=1000, help="posterior draws per image")
     parser.add_argument("--images", type=int, default=30, help="images timed one by one (latency)")

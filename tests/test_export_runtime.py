@@ -385,3 +385,44 @@ def test_each_inputs_draws_of_a_member_are_an_even_block():
     assert (~real).sum() == np.sum(np.bincount(rows // n) % 2)
     empty, mask = _even_blocks(rows[:0], n)
     assert empty.size == 0 and mask.size == 0
+
+
+def test_one_hot_spline_bins_are_zukos_to_the_bit():
+    """The sample graphs look the spline's bins up by one-hot sums (:class:`_OneHotRQS`, faster in onnxruntime than
+    gathers): every output of zuko's spline — the bin's knots and slopes, the forward and inverse maps and the
+    log-Jacobian — is the same to the bit, inside the bins and outside the spline's bound (k = −1 and k = K)."""
+    from zuko.flows import NSF
+    from zuko.transforms import MonotonicRQSTransform
+
+    from components.export.onnx import _Conditioner, _one_hot_univariate, _OneHotRQS
+
+    g = torch.Generator().manual_seed(0)
+    bins = 8
+    widths, heights = 3 * torch.randn(64, 6, bins, generator=g), 3 * torch.randn(64, 6, bins, generator=g)
+    derivatives = 3 * torch.randn(64, 6, bins - 1, generator=g)
+    zuko_spline = MonotonicRQSTransform(widths, heights, derivatives, slope=1e-3)
+    ours = _OneHotRQS(widths, heights, derivatives, slope=1e-3)
+    for k in range(-1, bins + 1):
+        index = torch.full((64, 6), k)
+        for a, b in zip(zuko_spline.bin(index), ours.bin(index), strict=True):
+            assert torch.equal(a, b), k
+    x = 6 * torch.randn(64, 6, generator=g)  # beyond the bound 5 too
+    assert (x.abs() > 5).any()
+    assert torch.equal(zuko_spline(x), ours(x))
+    assert torch.equal(zuko_spline.inv(x), ours.inv(x))
+    for a, b in zip(zuko_spline.call_and_ladj(x), ours.call_and_ladj(x), strict=True):
+        assert torch.equal(a, b)
+    # the sample graph's conditioner swaps the NSF's spline and nothing else
+    flow = NSF(features=3, context=2, bins=bins, transforms=1, hidden_features=(8,))
+    t = flow.transform.transforms[0]
+    swapped = _one_hot_univariate(t.univariate)
+    assert swapped.func is _OneHotRQS and swapped.keywords == t.univariate.keywords
+    assert _one_hot_univariate(torch.distributions.ExpTransform) is torch.distributions.ExpTransform
+    c, x3 = torch.randn(5, 1, 2, generator=g), torch.randn(5, 4, 3, generator=g)
+    conditioner, with_gathers = _Conditioner(t, c), _Conditioner(t, c)
+    assert conditioner.univariate.func is _OneHotRQS
+    with_gathers.univariate = t.univariate
+    with torch.no_grad():
+        y = conditioner(x3)(x3)
+        assert torch.equal(y, with_gathers(x3)(x3))
+        assert torch.equal(conditioner(x3).inv(y), with_gathers(x3).inv(y))

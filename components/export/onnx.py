@@ -31,6 +31,7 @@ Used by the ``export`` stage.
 from __future__ import annotations
 
 import copy
+import functools
 import io
 import json
 import math
@@ -47,7 +48,7 @@ from torch.distributions import Transform
 from torch.nn import functional as F
 from zuko.flows.autoregressive import MaskedAutoregressiveTransform
 from zuko.nn import MaskedLinear
-from zuko.transforms import DependentTransform
+from zuko.transforms import DependentTransform, MonotonicRQSTransform
 from zuko.utils import unpack
 
 from components.core import weather
@@ -134,7 +135,8 @@ class _SampleGraph(nn.Module):
       broadcast over the n draws) instead of once per draw;
     * the log-Jacobian reuses the last pass's spline: after P passes (the DAG's depth) every parameter of the
       spline has its final value, so ``f(x_final) = f(x_{P−1})`` exactly (zuko evaluates the conditioner again);
-    * the context's share of the conditioner's first layer is computed once per input (:class:`_Conditioner`).
+    * the context's share of the conditioner's first layer is computed once per input (:class:`_Conditioner`);
+    * the splines look their bins up by one-hot sums instead of gathers (:class:`_OneHotRQS`), to the bit the same.
 
     For a coupling flow (P = 2) a draw costs one conditioner evaluation per transform instead of three. The export
     checks the graph against zuko's own inverse (:func:`~components.posterior.mixture.draw_flow`).
@@ -169,6 +171,39 @@ class _SampleGraph(nn.Module):
         return y, log_base + ladj  # log q(z) = log N(ε) + log |det ∂ε/∂z|
 
 
+class _OneHotRQS(MonotonicRQSTransform):
+    """zuko's monotonic rational-quadratic spline whose bin lookup is a one-hot sum instead of a gather.
+
+    For bin indices k ``(*)`` each knot table ``(*, K + 1)`` is read as ``Σⱼ tableⱼ · [j = k]``: every term but one is an
+    exact zero, so the sum is ``table[k]`` to the bit (the knots and derivatives are finite: zuko bounds them). In the
+    exported graph this is Equal, Mul and ReduceSum, which onnxruntime runs ~1.6× as fast a draw as GatherElements on
+    tables expanded to every draw (BENCHMARKS.md "The splines' bins by one-hot sums"). ``bin`` is zuko's method
+    (zuko 1.x); ``tests/test_export_runtime.py`` checks the two against each other.
+    """
+
+    def bin(self, k: Tensor) -> tuple[Tensor, ...]:
+        mask = torch.logical_and(0 <= k, k < self.bins)
+        k = (k % self.bins).unsqueeze(-1)
+        j = torch.arange(self.bins + 1, device=k.device)
+        at_k0 = (j == k).to(self.horizontal.dtype)  # (*, K + 1)
+        at_k1 = (j == k + 1).to(self.horizontal.dtype)
+        x0, x1 = (self.horizontal * at_k0).sum(-1), (self.horizontal * at_k1).sum(-1)
+        y0, y1 = (self.vertical * at_k0).sum(-1), (self.vertical * at_k1).sum(-1)
+        d0, d1 = (self.derivatives * at_k0).sum(-1), (self.derivatives * at_k1).sum(-1)
+        s = (y1 - y0) / (x1 - x0)
+        return mask, x0, x1, y0, y1, d0, d1, s
+
+
+def _one_hot_univariate(univariate: Any) -> Any:
+    """``univariate`` with :class:`_OneHotRQS` for zuko's spline (``NSF``'s ``partial(MonotonicRQSTransform, …)``);
+    any other univariate transform as it is."""
+    if isinstance(univariate, functools.partial) and univariate.func is MonotonicRQSTransform:
+        return functools.partial(_OneHotRQS, *univariate.args, **univariate.keywords)
+    if univariate is MonotonicRQSTransform:
+        return _OneHotRQS
+    return univariate
+
+
 class _Conditioner:
     """zuko's ``MaskedAutoregressiveTransform.meta(c, x)`` with the context's share of the first layer computed once.
 
@@ -179,6 +214,7 @@ class _Conditioner:
     def __init__(self, t: MaskedAutoregressiveTransform, c: Tensor) -> None:
         self.t = t
         self.c = c
+        self.univariate = _one_hot_univariate(t.univariate)
         layers = list(t.hyper)
         self.split = isinstance(layers[0], MaskedLinear)
         if self.split:
@@ -193,7 +229,7 @@ class _Conditioner:
         for layer in self.rest:
             h = layer(h)
         phi = unpack(h.unflatten(-1, (-1, self.t.total)), self.t.shapes)
-        return DependentTransform(self.t.univariate(*phi), 1)
+        return DependentTransform(self.univariate(*phi), 1)
 
     def at_zero(self) -> Transform:
         """The transform at x = 0 (the first inversion pass), once per input: parameters ``(B, 1, ...)``."""

@@ -1,14 +1,15 @@
-"""The splines' bin lookup in the exported sample graph: one-hot sums (the export's) against zuko's gathers.
+"""The splines' bin lookup in the exported graphs: one-hot sums (the export's) against zuko's gathers.
 
-Exports member 0's sample graph (:class:`components.export.onnx._SampleGraph`) of a trained model twice — as the
-export stage does (bins read by one-hot sums, :class:`components.export.onnx._OneHotRQS`) and with zuko's own spline
-(``torch.gather``, GatherElements in ONNX) — checks that both give the same draws and log-densities to the bit, and
-times them in onnxruntime, alternating call by call, one thread, on the test split's contexts (or random ones).
+Exports member 0's sample graph (:class:`components.export.onnx._SampleGraph`; ``--graph log_prob``: its density
+graph, :class:`components.export.onnx._LogProbGraph`) of a trained model twice — as the export stage does (bins read
+by one-hot sums, :class:`components.export.onnx._OneHotRQS`) and with zuko's own spline (``torch.gather``,
+GatherElements in ONNX) — checks that both give the same outputs to the bit, and times them in onnxruntime,
+alternating call by call, one thread, on the test split's contexts (or random ones).
 
-    .venv/bin/python benchmarks/bench_spline_lookup.py [--model models/cues-50000/model.pt] [--batch 32 --draws 500]
+    .venv/bin/python benchmarks/bench_spline_lookup.py [--graph sample|log_prob] [--model models/cues-50000/model.pt]
 
-Prints µs per draw for each (median and best) and the median ratio of adjacent calls, and one JSON line (``{"benchmark": "spline_lookup", ...}``) with
-machine information.
+Prints µs per draw for each (median and best) and the median ratio of adjacent calls, and one JSON line
+(``{"benchmark": "spline_lookup", ...}``) with machine information.
 """
 
 from __future__ import annotations
@@ -37,26 +38,25 @@ import components.export.onnx as export_onnx  # noqa: E402
 from components.core import seeding  # noqa: E402
 from components.posterior.store import load_npe  # noqa: E402
 
-AXES = {"context": ("batch",), "eps": ("batch", "draws"), "z": ("batch", "draws"), "log_qz": ("batch", "draws")}
+SAMPLE_AXES = {"context": ("batch",), "eps": ("batch", "draws"), "z": ("batch", "draws"), "log_qz": ("batch", "draws")}
+LOG_PROB_AXES = {"context": ("batch",), "z": ("batch",), "log_qz": ("batch",)}
 
 
-def _export(flow: torch.nn.Module, context: torch.Tensor, d: int, path: Path, gathers: bool) -> None:
-    """Member ``flow``'s sample graph to ``path``; ``gathers``: with zuko's spline instead of the one-hot lookup."""
+def _export(graph: str, flow: torch.nn.Module, context: torch.Tensor, d: int, path: Path, gathers: bool) -> None:
+    """Member ``flow``'s ``graph`` (``sample`` or ``log_prob``) to ``path``; ``gathers``: with zuko's spline instead of
+    the one-hot lookup."""
     swap = export_onnx._one_hot_univariate
     if gathers:
         export_onnx._one_hot_univariate = lambda univariate: univariate  # zuko's spline, as before the change
     try:
-        eps = torch.zeros(2, 3, d)
         with torch.no_grad():
-            export_onnx._export_graph(
-                export_onnx._SampleGraph(flow),
-                (context[:2], eps),
-                path,
-                ["context", "eps"],
-                ["z", "log_qz"],
-                "dynamo",
-                AXES,
-            )
+            if graph == "sample":
+                module, args = export_onnx._SampleGraph(flow), (context[:2], torch.zeros(2, 3, d))
+                names, axes = (["context", "eps"], ["z", "log_qz"]), SAMPLE_AXES
+            else:
+                module, args = export_onnx._LogProbGraph(flow), (context[:2], torch.zeros(2, d))
+                names, axes = (["context", "z"], ["log_qz"]), LOG_PROB_AXES
+            export_onnx._export_graph(module, args, path, *names, "dynamo", axes)
     finally:
         export_onnx._one_hot_univariate = swap
 
@@ -68,6 +68,13 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--draws", type=int, default=500, help="draws per input")
     p.add_argument("--repeats", type=int, default=40, help="timed calls of each graph, alternating")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--graph",
+        choices=["sample", "log_prob"],
+        default="sample",
+        help="sample: a member's draws (sample_<k>.onnx); log_prob: its density at batch × draws points, each with "
+        "its input's context (log_prob_<k>.onnx, as the runtime asks an ensemble's other members)",
+    )
     args = p.parse_args(argv)
     if min(args.batch, args.draws, args.repeats) < 1:
         p.error("--batch, --draws and --repeats must be at least 1")
@@ -87,7 +94,11 @@ def main(argv: list[str] | None = None) -> dict:
     with torch.no_grad():
         context = export_onnx._ContextGraph(model)(x)
     d = len(model.box.names)
-    feeds = {"context": context.numpy(), "eps": rng.standard_normal((len(x), args.draws, d)).astype(np.float32)}
+    eps = rng.standard_normal((len(x), args.draws, d)).astype(np.float32)
+    if args.graph == "sample":
+        feeds = {"context": context.numpy(), "eps": eps}
+    else:
+        feeds = {"context": np.repeat(context.numpy(), args.draws, axis=0), "z": eps.reshape(-1, d)}
     options = onnxruntime.SessionOptions()
     options.intra_op_num_threads = options.inter_op_num_threads = 1
     options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
@@ -95,7 +106,7 @@ def main(argv: list[str] | None = None) -> dict:
     with tempfile.TemporaryDirectory(prefix="spline-lookup-") as tmp:
         for name, gathers in (("one-hot", False), ("gather", True)):
             path = Path(tmp) / f"{name}.onnx"
-            _export(flow, context, d, path, gathers)
+            _export(args.graph, flow, context, d, path, gathers)
             sessions[name] = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
             outputs[name] = sessions[name].run(None, feeds)
     identical = all(np.array_equal(a, b) for a, b in zip(outputs["one-hot"], outputs["gather"], strict=True))
@@ -109,7 +120,7 @@ def main(argv: list[str] | None = None) -> dict:
     best = {name: 1e6 * min(t) / (len(x) * args.draws) for name, t in times.items()}
     # the ratio of each pair of adjacent calls, its median: robust to the machine's drift within the run
     ratio = statistics.median(g / o for g, o in zip(times["gather"], times["one-hot"], strict=True))
-    print(f"model {args.model}, contexts {source}, {len(x)} inputs × {args.draws} draws, one thread")
+    print(f"{args.graph} graph of {args.model}, contexts {source}, {len(x)} inputs × {args.draws} draws, one thread")
     for name, us in per_draw.items():
         print(f"{name:8s} {us:7.2f} µs a draw (median; best {best[name]:.2f})")
     print(
@@ -118,6 +129,7 @@ def main(argv: list[str] | None = None) -> dict:
     )
     record = {
         "benchmark": "spline_lookup",
+        "graph": args.graph,
         "model": str(args.model),
         "contexts": source,
         "batch": len(x),

@@ -388,13 +388,13 @@ def test_each_inputs_draws_of_a_member_are_an_even_block():
 
 
 def test_one_hot_spline_bins_are_zukos_to_the_bit():
-    """The sample graphs look the spline's bins up by one-hot sums (:class:`_OneHotRQS`, faster in onnxruntime than
+    """The sample and log-density graphs look the spline's bins up by one-hot sums (:class:`_OneHotRQS`, faster in onnxruntime than
     gathers): every output of zuko's spline — the bin's knots and slopes, the forward and inverse maps and the
     log-Jacobian — is the same to the bit, inside the bins and outside the spline's bound (k = −1 and k = K)."""
     from zuko.flows import NSF
     from zuko.transforms import MonotonicRQSTransform
 
-    from components.export.onnx import _Conditioner, _one_hot_univariate, _OneHotRQS
+    from components.export.onnx import _Conditioner, _LogProbGraph, _one_hot_univariate, _OneHotRQS
 
     g = torch.Generator().manual_seed(0)
     bins = 8
@@ -426,3 +426,10 @@ def test_one_hot_spline_bins_are_zukos_to_the_bit():
         y = conditioner(x3)(x3)
         assert torch.equal(y, with_gathers(x3)(x3))
         assert torch.equal(conditioner(x3).inv(y), with_gathers(x3).inv(y))
+    # the log-density graph: a copy of the flow with the one-hot spline, the same values, the flow left alone
+    log_prob = _LogProbGraph(flow)
+    assert log_prob.flow.transform.transforms[0].univariate.func is _OneHotRQS
+    assert t.univariate.func is MonotonicRQSTransform
+    c2, z = torch.randn(200, 2, generator=g), 3 * torch.randn(200, 3, generator=g)
+    with torch.no_grad():
+        assert torch.equal(log_prob(c2, z), flow(c2).log_prob(z))

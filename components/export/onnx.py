@@ -85,11 +85,17 @@ class _ContextGraph(nn.Module):
 
 
 class _LogProbGraph(nn.Module):
-    """``(c (B, features), z (B, d)) → log qₖ(z | c) (B,)``: one member's z-space log-density."""
+    """``(c (B, features), z (B, d)) → log qₖ(z | c) (B,)``: one member's z-space log-density.
+
+    The graph is of a copy of the flow whose splines look their bins up by one-hot sums (:class:`_OneHotRQS`, the same
+    values to the bit); the flow itself is left as it is."""
 
     def __init__(self, flow: nn.Module) -> None:
         super().__init__()
-        self.flow = flow
+        self.flow = copy.deepcopy(flow)
+        for t in self.flow.modules():
+            if isinstance(t, MaskedAutoregressiveTransform):
+                t.univariate = _one_hot_univariate(t.univariate)
 
     def forward(self, context: Tensor, z: Tensor) -> Tensor:
         return self.flow(context).log_prob(z)

@@ -394,7 +394,14 @@ def test_one_hot_spline_bins_are_zukos_to_the_bit():
     from zuko.flows import NSF
     from zuko.transforms import MonotonicRQSTransform
 
-    from components.export.onnx import _Conditioner, _LogProbGraph, _one_hot_univariate, _OneHotRQS
+    from components.export.onnx import (
+        _Conditioner,
+        _LogProbGraph,
+        _one_hot_splines,
+        _one_hot_univariate,
+        _OneHotRQS,
+        _SampleGraph,
+    )
 
     g = torch.Generator().manual_seed(0)
     bins = 8
@@ -412,24 +419,24 @@ def test_one_hot_spline_bins_are_zukos_to_the_bit():
     assert torch.equal(zuko_spline.inv(x), ours.inv(x))
     for a, b in zip(zuko_spline.call_and_ladj(x), ours.call_and_ladj(x), strict=True):
         assert torch.equal(a, b)
-    # the sample graph's conditioner swaps the NSF's spline and nothing else
+    # the exported graphs' copy of an NSF swaps its splines and nothing else, and leaves the flow alone
     flow = NSF(features=3, context=2, bins=bins, transforms=1, hidden_features=(8,))
     t = flow.transform.transforms[0]
     swapped = _one_hot_univariate(t.univariate)
     assert swapped.func is _OneHotRQS and swapped.keywords == t.univariate.keywords
     assert _one_hot_univariate(torch.distributions.ExpTransform) is torch.distributions.ExpTransform
+    copy_ = _one_hot_splines(flow)
+    one_hot = copy_.transform.transforms[0]
+    assert one_hot.univariate.func is _OneHotRQS and t.univariate.func is MonotonicRQSTransform
+    assert _SampleGraph(flow).flow.transform.transforms[0].univariate.func is _OneHotRQS
     c, x3 = torch.randn(5, 1, 2, generator=g), torch.randn(5, 4, 3, generator=g)
-    conditioner, with_gathers = _Conditioner(t, c), _Conditioner(t, c)
-    assert conditioner.univariate.func is _OneHotRQS
-    with_gathers.univariate = t.univariate
     with torch.no_grad():
-        y = conditioner(x3)(x3)
-        assert torch.equal(y, with_gathers(x3)(x3))
-        assert torch.equal(conditioner(x3).inv(y), with_gathers(x3).inv(y))
-    # the log-density graph: a copy of the flow with the one-hot spline, the same values, the flow left alone
+        y = _Conditioner(one_hot, c)(x3)(x3)
+        assert torch.equal(y, _Conditioner(t, c)(x3)(x3))
+        assert torch.equal(_Conditioner(one_hot, c)(x3).inv(y), _Conditioner(t, c)(x3).inv(y))
+    # the log-density graph: the same values
     log_prob = _LogProbGraph(flow)
     assert log_prob.flow.transform.transforms[0].univariate.func is _OneHotRQS
-    assert t.univariate.func is MonotonicRQSTransform
     c2, z = torch.randn(200, 2, generator=g), 3 * torch.randn(200, 3, generator=g)
     with torch.no_grad():
         assert torch.equal(log_prob(c2, z), flow(c2).log_prob(z))

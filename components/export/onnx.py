@@ -87,15 +87,11 @@ class _ContextGraph(nn.Module):
 class _LogProbGraph(nn.Module):
     """``(c (B, features), z (B, d)) → log qₖ(z | c) (B,)``: one member's z-space log-density.
 
-    The graph is of a copy of the flow whose splines look their bins up by one-hot sums (:class:`_OneHotRQS`, the same
-    values to the bit); the flow itself is left as it is."""
+    The graph is of :func:`_one_hot_splines`'s copy of the flow (the same values to the bit)."""
 
     def __init__(self, flow: nn.Module) -> None:
         super().__init__()
-        self.flow = copy.deepcopy(flow)
-        for t in self.flow.modules():
-            if isinstance(t, MaskedAutoregressiveTransform):
-                t.univariate = _one_hot_univariate(t.univariate)
+        self.flow = _one_hot_splines(flow)
 
     def forward(self, context: Tensor, z: Tensor) -> Tensor:
         return self.flow(context).log_prob(z)
@@ -142,7 +138,8 @@ class _SampleGraph(nn.Module):
     * the log-Jacobian reuses the last pass's spline: after P passes (the DAG's depth) every parameter of the
       spline has its final value, so ``f(x_final) = f(x_{P−1})`` exactly (zuko evaluates the conditioner again);
     * the context's share of the conditioner's first layer is computed once per input (:class:`_Conditioner`);
-    * the splines look their bins up by one-hot sums instead of gathers (:class:`_OneHotRQS`), to the bit the same.
+    * the splines look their bins up by one-hot sums instead of gathers (:func:`_one_hot_splines`), to the bit the
+      same.
 
     For a coupling flow (P = 2) a draw costs one conditioner evaluation per transform instead of three. The export
     checks the graph against zuko's own inverse (:func:`~components.posterior.mixture.draw_flow`).
@@ -150,7 +147,7 @@ class _SampleGraph(nn.Module):
 
     def __init__(self, flow: nn.Module) -> None:
         super().__init__()
-        self.flow = flow
+        self.flow = _one_hot_splines(flow)
 
     def forward(self, context: Tensor, eps: Tensor) -> tuple[Tensor, Tensor]:
         c = context.unsqueeze(-2)  # (B, 1, features): broadcast over the draws
@@ -182,9 +179,10 @@ class _OneHotRQS(MonotonicRQSTransform):
 
     For bin indices k ``(*)`` each knot table ``(*, K + 1)`` is read as ``Σⱼ tableⱼ · [j = k]``: every term but one is an
     exact zero, so the sum is ``table[k]`` to the bit (the knots and derivatives are finite: zuko bounds them). In the
-    exported graph this is Equal, Mul and ReduceSum, which onnxruntime runs ~1.6× as fast a draw as GatherElements on
-    tables expanded to every draw (BENCHMARKS.md "The splines' bins by one-hot sums"). ``bin`` is zuko's method
-    (zuko 1.x); ``tests/test_export_runtime.py`` checks the two against each other.
+    exported graph this is Equal, Mul and ReduceSum, which onnxruntime runs faster than GatherElements on tables
+    expanded to every draw: ~1.2× a draw of the sample graph, ~1.06× a point of the density graph (BENCHMARKS.md "The
+    splines' bins by one-hot sums"; the compiled training step is faster with zuko's gathers and keeps them). ``bin``
+    is zuko's method (zuko 1.x); ``tests/test_export_runtime.py`` checks the two against each other.
     """
 
     def bin(self, k: Tensor) -> tuple[Tensor, ...]:
@@ -210,6 +208,16 @@ def _one_hot_univariate(univariate: Any) -> Any:
     return univariate
 
 
+def _one_hot_splines(flow: nn.Module) -> nn.Module:
+    """A copy of ``flow`` whose autoregressive transforms build :class:`_OneHotRQS` splines (the exported graphs');
+    ``flow`` itself is left as it is."""
+    flow = copy.deepcopy(flow)
+    for t in flow.modules():
+        if isinstance(t, MaskedAutoregressiveTransform):
+            t.univariate = _one_hot_univariate(t.univariate)
+    return flow
+
+
 class _Conditioner:
     """zuko's ``MaskedAutoregressiveTransform.meta(c, x)`` with the context's share of the first layer computed once.
 
@@ -220,7 +228,6 @@ class _Conditioner:
     def __init__(self, t: MaskedAutoregressiveTransform, c: Tensor) -> None:
         self.t = t
         self.c = c
-        self.univariate = _one_hot_univariate(t.univariate)
         layers = list(t.hyper)
         self.split = isinstance(layers[0], MaskedLinear)
         if self.split:
@@ -235,7 +242,7 @@ class _Conditioner:
         for layer in self.rest:
             h = layer(h)
         phi = unpack(h.unflatten(-1, (-1, self.t.total)), self.t.shapes)
-        return DependentTransform(self.univariate(*phi), 1)
+        return DependentTransform(self.t.univariate(*phi), 1)
 
     def at_zero(self) -> Transform:
         """The transform at x = 0 (the first inversion pass), once per input: parameters ``(B, 1, ...)``."""

@@ -173,7 +173,8 @@ def train_model(
             # E[log q(θ|x) − log p(θ)] over the test split: nats gained over the uniform prior
             "info_gain_nats": -test_nll + params.box.log_volume(),
             "best_val_loss": history.best_val_loss,
-            "best_epoch": history.best_epoch,
+            # counted from 1, as the epoch log lines and the loss plot count it (the history's index is from 0)
+            "best_epoch": history.best_epoch + 1,
             "epochs_run": len(history.records),
             # the epochs' seconds, summed over the runs that trained them: a model resumed from its finished
             # checkpoint keeps its training time (wall_seconds is this call's: loading, calibrating, testing)
@@ -205,7 +206,7 @@ def train_model(
         model_id,
         test_nll,
         metrics["info_gain_nats"],
-        history.best_epoch,
+        metrics["best_epoch"],
         len(history.records),
     )
     return metrics

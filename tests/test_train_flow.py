@@ -41,6 +41,13 @@ def test_train_logs_the_grid_in_mlflow_and_saves_a_loadable_model(project, monke
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     metrics = train_model("cues", 16, str(params))
     assert np.isfinite(metrics["test_nll"]) and metrics["epochs_run"] == 3
+    # the best epoch is counted from 1, as the loss plot and the log lines count it
+    history = json.loads((folder / "models/cues-16/history.json").read_text())
+    assert (
+        metrics["best_epoch"]
+        == int(np.argmin([r["val_loss"] for r in history["records"]])) + 1
+        == history["best_epoch"] + 1
+    )
     assert json.loads((folder / "reports/train/cues-16.json").read_text()) == json.loads(
         (folder / "models/cues-16/metrics.json").read_text()
     )

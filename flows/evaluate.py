@@ -198,7 +198,8 @@ def evaluate(params_path: str) -> dict:
     grid_files = [out / "plots" / f for f in ("coverage.png", "superiority.png", "parameters.png")]
     for m, v in metrics.items():
         logger.info(
-            "%s: calibration error %.3f (band %.3f: %s), coverage gap %+.3f, π median %.2f, NLL %.2f, PPC %.2f",
+            "%s: calibration error %.3f (band %.3f: %s), coverage gap %+.3f, π median %.2f, NLL %.2f (information "
+            "gain %.2f nats), PPC %.2f",
             m,
             v["calibration_error"],
             v["calibration_band"],
@@ -206,6 +207,7 @@ def evaluate(params_path: str) -> dict:
             v["coverage_auc_gap"],
             v["pi_median"],
             v["test_nll"],
+            v["info_gain_nats"],
             v["ppc_score"],
         )
 

@@ -159,9 +159,10 @@ def task2(params_path: str = "params.yaml") -> dict:
         _description(metrics, model.name),
     )
     energy = metrics["energy_distance_sq"]["all"]
+    varying = [n for n in metrics["parameters"] if n not in t.fixed]
     stage.logger.info(
         "task2 (%s, %s estimate): %.1f %% of the true mass inside the estimate's %.0f %% HDR; energy distance² (U) "
-        "%.4f, prior %.4f, ratio %.3f (truth vs truth %.4f)",
+        "%.4f, prior %.4f, ratio %.3f (truth vs truth %.4f); W₁ to the truth over the prior's: %s",
         model.name,
         t.estimate,
         100 * metrics["true_mass_in_hdr"],
@@ -170,6 +171,11 @@ def task2(params_path: str = "params.yaml") -> dict:
         energy["prior_to_truth"],
         energy["ratio"],
         energy["truth_to_truth"],
+        ", ".join(
+            f"{n} {metrics['parameters'][n]['wasserstein_ratio']:.3f} (calibrated posteriors of its widths "
+            f"{floor['calibrated']['1'][n]:.3f})"
+            for n in varying
+        ),
     )
     return metrics
 

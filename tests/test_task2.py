@@ -13,7 +13,7 @@ from scipy.spatial.distance import cdist
 from components.core.config import parse_params
 from components.core.seeding import rng
 from components.domains.absolute import Domain
-from components.domains.distances import energy_distance_sq, marginal_hdr, wasserstein_1d
+from components.domains.distances import energy_distance_sq, marginal_hdr, resampled_wasserstein_1d, wasserstein_1d
 from components.domains.task2 import reference_draws, render_bag, task2_metrics, true_distribution, width_floor
 from tests.conftest import micro_params
 from tests.test_domain import GaussianPosterior
@@ -54,6 +54,27 @@ def test_energy_distance_matches_the_closed_form_and_scipy():
     assert scaled == pytest.approx(energy_distance_sq(np.c_[x, x], np.c_[y, y]), rel=1e-12)
     with pytest.raises(ValueError, match="same dimension"):
         energy_distance_sq(np.zeros((3, 2)), np.zeros((3, 1)))
+
+
+def test_resampled_wasserstein_is_scipys_distance_of_each_resampled_bag():
+    """A bootstrap's W₁ by one sort and weights equals scipy's W₁ of each resampled bag's pooled points (ties between
+    the bag and the reference included: points on a grid), to float rounding; bad counts are refused by name."""
+    r = rng(3, "test", "resampled-w1")
+    points = np.round(r.normal(40, 12, (60, 7)), 1)  # 60 images of 7 points, many ties
+    reference = np.round(r.uniform(0, 100, 500), 1)
+    idx = r.integers(60, size=(25, 60))
+    counts = np.stack([np.bincount(i, minlength=60) for i in idx])
+    fast = resampled_wasserstein_1d(points, reference, counts)
+    slow = [stats.wasserstein_distance(points[i].ravel(), reference) for i in idx]
+    np.testing.assert_allclose(fast, slow, rtol=1e-12, atol=1e-12)
+    half = np.r_[np.full(30, 2), np.zeros(30, int)][None]  # the first 30 images twice: the first 30 once
+    assert resampled_wasserstein_1d(points, reference, half)[0] == pytest.approx(
+        stats.wasserstein_distance(points[:30].ravel(), reference), rel=1e-12
+    )
+    with pytest.raises(ValueError, match=r"counts must be non-negative integers of shape \(R, 60\)"):
+        resampled_wasserstein_1d(points, reference, counts[:, :59])
+    with pytest.raises(ValueError, match="at least one image"):
+        resampled_wasserstein_1d(points, reference, np.zeros((1, 60), int))
 
 
 def test_wasserstein_and_marginal_hdr_against_exact_values():

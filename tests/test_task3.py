@@ -196,6 +196,20 @@ def test_the_metrics_name_the_target_kind_of_every_figure(synthetic):
     assert all(np.all(np.diff([row[k] for row in roc]) >= 0) for k in roc[0] if k != "fpr"), "ROC non-decreasing"
 
 
+def test_the_stage_summary_names_the_lowest_auc_from_eta_03_on(synthetic):
+    """The task3 stage's log line: each AUC below η = 0.3, then the lowest from there on (#14's target), with its η."""
+    from flows.task3 import _auc_summary, _auc_text
+
+    eta = synthetic[-1]["eta"]
+    text = _auc_summary(eta, "fresh")
+    assert text.startswith(f"η=0.1 {_auc_text(eta['0.1'], 'fresh')}, lowest at η ≥ 0.3 ")
+    lowest = min(("0.3", "0.6", "1"), key=lambda k: (eta[k]["auc_fresh"], float(k)))
+    assert text.endswith(f"{_auc_text(eta[lowest], 'fresh')} (η={float(lowest):g})")
+    worse = {**eta, "0.6": {**eta["0.6"], "auc_fresh": 0.5, "auc_ci_low_fresh": 0.4, "auc_ci_high_fresh": 0.6}}
+    assert _auc_summary(worse, "fresh").endswith("0.50 [0.40, 0.60] (η=0.6)")
+    assert _auc_summary({"0": eta["0"]}, "fresh") == "n/a"  # η = 0 has no AUC
+
+
 def test_false_alarm_check_interval_is_clopper_pearson():
     c = FalseAlarmCheck.of(np.array([True] * 3 + [False] * 27), 0.05, "fresh")
     assert (c.n, c.flagged) == (30, 3) and c.rate == pytest.approx(0.1)

@@ -30,7 +30,12 @@ from components.core import seeding, weather
 from components.core.config import Params
 from components.domains.absolute import Domain
 from components.domains.deconvolution import deconvolve
-from components.domains.distances import energy_distance_sq, marginal_hdr, wasserstein_1d
+from components.domains.distances import (
+    energy_distance_sq,
+    marginal_hdr,
+    resampled_wasserstein_1d,
+    wasserstein_1d,
+)
 from components.domains.scenarios import GaussianMixtureWeather
 from components.evaluate import diagnostics
 
@@ -275,16 +280,20 @@ def _difference_interval(
     ``free``: ``replicates`` resamplings of the N images, shared by the two mixtures (the truth's draws,
     ``task2.samples`` of a known distribution, are kept) → ``(low, high)``, each ``(len(free),)``."""
     box = params.box
-    flat = [np.clip(m[..., free], box.low[free], box.high[free]) for m in (first, second)]
-    t = truth[:, free]
-    w = wasserstein_1d(prior[:, free], t)
-
-    def difference(images: np.ndarray) -> np.ndarray:
-        one, two = (wasserstein_1d(m[images].reshape(-1, len(free)), t) / w for m in flat)
-        return one - two
-
     n = first.shape[0]
     r = seeding.rng(params.seed, "task2", "width-floor", "bootstrap")
-    reps = np.stack([difference(r.integers(n, size=n)) for _ in range(replicates)])
+    counts = np.stack([np.bincount(r.integers(n, size=n), minlength=n) for _ in range(replicates)])
+    w = wasserstein_1d(prior[:, free], truth[:, free])
+    reps = np.stack(
+        [
+            (
+                resampled_wasserstein_1d(np.clip(first[..., k], box.low[k], box.high[k]), truth[:, k], counts)
+                - resampled_wasserstein_1d(np.clip(second[..., k], box.low[k], box.high[k]), truth[:, k], counts)
+            )
+            / w[j]
+            for j, k in enumerate(free)
+        ],
+        axis=1,
+    )
     low, high = np.quantile(reps, [0.025, 0.975], axis=0)
     return low, high

@@ -6,9 +6,12 @@ sizes (``max_images``) and, from the other images of the same boxes, ``--targets
 ``--size`` images (λ = ``task3.weights``, counts drawn per target) and as many out-of-ODD ones (the first half of an
 in-ODD target, the rest images of b0). Each target runs through ``pidc relate`` (in-process, the registry's champion,
 ``--calibration-targets 100``) with ``--smoothing scott`` and ``none`` (at the command's other defaults). Prints per
-smoothing the median d_E = ‖λ̂ − λ‖₂ of the in-ODD targets and how many of each kind were flagged, and one JSON line.
+smoothing the median d_E = ‖λ̂ − λ‖₂ of the in-ODD targets, how many of each kind were flagged, and per parameter how
+many targets of each kind had its W₁ beyond its in-ODD level (the command's table of where the target differs, from
+its ``--json``), and one JSON line. ``--source-draws N`` repeats it for N splits of the bags into source folders and
+fresh pools (the levels' guarantee is over the sources' draws).
 
-    .venv/bin/python benchmarks/bench_relate_cli.py --targets 6 --size 30
+    .venv/bin/python benchmarks/bench_relate_cli.py --targets 6 --size 30 [--smoothings scott none] [--source-draws 1]
 """
 
 from __future__ import annotations
@@ -21,7 +24,6 @@ import argparse
 import contextlib
 import io
 import json
-import re
 import sys
 import tempfile
 import time
@@ -57,17 +59,20 @@ def _write(folder: Path, images: np.ndarray, idx: np.ndarray) -> Path:
     return folder
 
 
-def _relate(target: Path, sources: list[Path], smoothing: str, registry: Path) -> tuple[np.ndarray, bool]:
-    """λ̂ and the verdict of one ``pidc relate`` run (its printed table parsed)."""
-    out = io.StringIO()
+def _relate(target: Path, sources: list[Path], smoothing: str, registry: Path) -> tuple[np.ndarray, bool, set[str]]:
+    """λ̂, the verdict and the parameters whose W₁ exceeds their in-ODD level (whatever the verdict) of one
+    ``pidc relate`` run (its ``--json`` report)."""
+    report_path = target.with_suffix(f".{smoothing}.json")
     args = [str(target), *map(str, sources), "--registry", str(registry), "--smoothing", smoothing]
+    out = io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
-        code = pidc(["relate", *args, "--calibration-targets", "100"])
-    text = out.getvalue()
+        code = pidc(["relate", *args, "--calibration-targets", "100", "--json", str(report_path)])
     if code != 0:
-        raise RuntimeError(f"pidc relate {' '.join(args)} failed with exit code {code}:\n{text}")
-    weights = dict(re.findall(r"^(b\d)\s+\d+\s+(\d\.\d{4})$", text, re.M))
-    return np.array([float(weights[b]) for b in SOURCES]), "verdict: OUTSIDE the ODD" in text
+        raise RuntimeError(f"pidc relate {' '.join(args)} failed with exit code {code}:\n{out.getvalue()}")
+    report = json.loads(report_path.read_text())
+    weights = {s["name"]: s["weight"] for s in report["sources"]}
+    exceeded = {name for name, p in report["parameters"].items() if p["exceeds_in_odd_level"]}
+    return np.array([float(weights[b]) for b in SOURCES]), report["outside"], exceeded
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -75,9 +80,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--targets", type=int, default=6, help="in-ODD and out-of-ODD target folders each (≥ 1)")
     ap.add_argument("--size", type=int, default=30, help="images per target folder (≥ 2)")
     ap.add_argument("--params", type=Path, default=ROOT / "params.yaml")
+    ap.add_argument("--smoothings", nargs="+", choices=("scott", "none"), default=["scott", "none"])
+    ap.add_argument(
+        "--source-draws", type=int, default=1, help="draws of the source folders, --targets of each kind for each (≥ 1)"
+    )
     args = ap.parse_args(argv)
-    if args.targets < 1 or args.size < 2:
-        ap.error(f"--targets must be ≥ 1 and --size ≥ 2, got {args.targets} and {args.size}")
+    if args.targets < 1 or args.size < 2 or args.source_draws < 1:
+        ap.error(
+            f"--targets and --source-draws must be ≥ 1 and --size ≥ 2, got {args.targets}, {args.source_draws}, {args.size}"
+        )
     params = load_params(args.params)
     split = open_split(ROOT / params.data.root, "test")
     images, theta = split.images(), split.theta
@@ -87,53 +98,76 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     rows: dict[str, dict] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        root = Path(tmp)
-        sources, pools = [], []
-        for b in SOURCES:
-            members = r.permutation(np.flatnonzero(owner == b))
-            n = params.task3.bags[b].max_images
-            if len(members) < n + args.size:
-                raise SystemExit(f"bag {b}: {len(members)} test images, need {n} + {args.size} for its pool")
-            sources.append(_write(root / b, images, members[:n]))
-            pools.append(members[n:])
         outside = np.flatnonzero(owner == "b0")
-        targets = []
-        for t in range(args.targets):
-            counts = r.multinomial(args.size, lam)
-            idx = np.concatenate([r.choice(p, c, replace=False) for p, c in zip(pools, counts, strict=True)])
-            half = args.size // 2
-            out_idx = np.concatenate([idx[:half], r.choice(outside, args.size - half, replace=False)])
-            targets += [
-                ("in", _write(root / f"in{t}", images, idx)),
-                ("out", _write(root / f"out{t}", images, out_idx)),
-            ]
-        for smoothing in ("scott", "none"):
+        targets = []  # (kind, folder, its source folders)
+        for draw in range(args.source_draws):  # a new split of each bag into source folder and fresh pool
+            root = Path(tmp) / f"draw{draw}"
+            sources, pools = [], []
+            for b in SOURCES:
+                members = r.permutation(np.flatnonzero(owner == b))
+                n = params.task3.bags[b].max_images
+                if len(members) < n + args.size:
+                    raise SystemExit(f"bag {b}: {len(members)} test images, need {n} + {args.size} for its pool")
+                sources.append(_write(root / b, images, members[:n]))
+                pools.append(members[n:])
+            for t in range(args.targets):
+                counts = r.multinomial(args.size, lam)
+                idx = np.concatenate([r.choice(p, c, replace=False) for p, c in zip(pools, counts, strict=True)])
+                half = args.size // 2
+                out_idx = np.concatenate([idx[:half], r.choice(outside, args.size - half, replace=False)])
+                targets += [
+                    ("in", _write(root / f"in{t}", images, idx), sources),
+                    ("out", _write(root / f"out{t}", images, out_idx), sources),
+                ]
+        names = params.box.names
+        total = args.targets * args.source_draws
+        for smoothing in args.smoothings:
             d_e, flagged = [], {"in": 0, "out": 0}
-            for kind, folder in targets:
-                weights, is_outside = _relate(folder, sources, smoothing, ROOT / "registry")
+            marks = {kind: dict.fromkeys(names, 0) for kind in ("in", "out")}
+            any_mark = {"in": 0, "out": 0}
+            for kind, folder, sources in targets:
+                weights, is_outside, marked = _relate(folder, sources, smoothing, ROOT / "registry")
                 flagged[kind] += is_outside
+                any_mark[kind] += bool(marked)
+                for name in marked:
+                    marks[kind][name] += 1
                 if kind == "in":
                     d_e.append(float(np.linalg.norm(weights - lam)))
             rows[smoothing] = {
                 "d_e_median_in_odd": round(float(np.median(d_e)), 3),
                 "flagged_in_odd": flagged["in"],
                 "flagged_out_of_odd": flagged["out"],
-                "false_alarm_rate_ci": clopper_pearson(flagged["in"], args.targets),
-                "detection_rate_ci": clopper_pearson(flagged["out"], args.targets),
+                "false_alarm_rate_ci": clopper_pearson(flagged["in"], total),
+                "detection_rate_ci": clopper_pearson(flagged["out"], total),
+                # the per-parameter table: how many targets had each parameter's W₁ beyond its in-ODD level
+                "exceeded_in_odd": marks["in"],
+                "exceeded_out_of_odd": marks["out"],
+                "exceeded_in_odd_rate_ci": clopper_pearson(sum(marks["in"].values()), total * len(names)),
+                "any_exceeded_in_odd": any_mark["in"],
+                "any_exceeded_out_of_odd": any_mark["out"],
             }
-    print(f"pidc relate, {args.targets} in-ODD and {args.targets} out-of-ODD targets of {args.size} test images")
+    print(
+        f"pidc relate, {total} in-ODD and {total} out-of-ODD targets of {args.size} test images "
+        f"({args.targets} each for {args.source_draws} draws of the source folders)"
+    )
     for smoothing, row in rows.items():
         fa, det = row["false_alarm_rate_ci"], row["detection_rate_ci"]
         print(
             f"  --smoothing {smoothing:5s}: median d_E {row['d_e_median_in_odd']:.3f}; flagged: in-ODD "
-            f"{row['flagged_in_odd']}/{args.targets} (95 % CI {fa[0]:.3f}–{fa[1]:.3f}), out-of-ODD "
-            f"{row['flagged_out_of_odd']}/{args.targets} (95 % CI {det[0]:.3f}–{det[1]:.3f})"
+            f"{row['flagged_in_odd']}/{total} (95 % CI {fa[0]:.3f}–{fa[1]:.3f}), out-of-ODD "
+            f"{row['flagged_out_of_odd']}/{total} (95 % CI {det[0]:.3f}–{det[1]:.3f})"
         )
+        for kind in ("in_odd", "out_of_odd"):
+            counts = ", ".join(f"{n} {c}" for n, c in row[f"exceeded_{kind}"].items())
+            print(f"      W₁ beyond the in-ODD level, {kind} targets: {counts}; any: {row[f'any_exceeded_{kind}']}")
+        low, high = row["exceeded_in_odd_rate_ci"]
+        print(f"      in-ODD rate per parameter and target: {low:.3f}–{high:.3f} (95 % CI)")
     print(
         json.dumps(
             {
                 "benchmark": "relate_cli",
                 "targets": args.targets,
+                "source_draws": args.source_draws,
                 "size": args.size,
                 "rows": rows,
                 "seconds": round(time.perf_counter() - t0, 1),

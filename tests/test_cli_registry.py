@@ -426,9 +426,65 @@ def test_relate_gives_weights_gaps_and_a_calibrated_verdict(world, capsys):
     assert "note: one source, so λ̂ = 1" in out
 
 
+DIFFERENCE = re.compile(
+    r"^(?P<name>\w+) \[[^\]]*\]\s+(?P<target>-?\d+\.\d+)\s+(?P<mixture>-?\d+\.\d+)\s+(?P<w1>\d+\.\d+)"
+    r"\s+(?P<level>\d+\.\d+)(?P<beyond> \*)?$",
+    re.M,
+)
+
+
+def verdict_outside(out: str) -> bool:
+    return "verdict: OUTSIDE the ODD" in out
+
+
+def test_relate_says_where_the_target_differs_and_writes_json_and_a_plot(world, capsys):
+    """The per-parameter table: every parameter once, sorted by W₁ over its in-ODD level; with an OUTSIDE verdict a *
+    exactly where W₁ exceeds it, with an inside one none; the foggy night differs from clear and overcast noons in the
+    sun first of all. --json holds the printed figures; --plot writes a PNG."""
+    sources = [world["clear"], world["overcast"]]
+    out_json, out_png = world["root"] / "relate" / "night.json", world["root"] / "relate" / "night.png"
+    common = ["--registry", world["registry"], "--model", "cues-tiny", "--calibration-targets", 40]
+    code, out, err = run(capsys, "relate", world["night"], *sources, *common, "--json", out_json, "--plot", out_png)
+    assert code == 0 and f"wrote {out_json}" in err and f"wrote {out_png}" in err, err
+    rows = [m.groupdict() for m in DIFFERENCE.finditer(out)]
+    assert sorted(r["name"] for r in rows) == sorted(NAMES), out
+    assert verdict_outside(out) and all((r["beyond"] is not None) == (float(r["w1"]) > float(r["level"])) for r in rows)
+    ratios = [float(r["w1"]) / float(r["level"]) for r in rows]
+    assert ratios == sorted(ratios, reverse=True)
+    sun = next(r for r in rows if r["name"] == "sun_altitude_angle")
+    assert sun["beyond"] and float(sun["target"]) < 0 < float(sun["mixture"]), out
+    report, verdict = json.loads(out_json.read_text()), relate_output(out)
+    assert report["outside"] == verdict["outside"] and report["relative_gap"] == pytest.approx(
+        verdict["relative_gap"], 1e-3
+    )
+    assert [s["name"] for s in report["sources"]] == ["clear", "overcast"] and report["target"]["images"] == 16
+    assert sum(s["weight"] for s in report["sources"]) == pytest.approx(1, abs=2e-4)
+    for r in rows:
+        p = report["parameters"][r["name"]]
+        assert p["wasserstein"] == pytest.approx(float(r["w1"]), abs=0.006)
+        assert p["exceeds_in_odd_level"] == (r["beyond"] is not None) and p["in_odd_level"] == pytest.approx(
+            float(r["level"]), abs=0.006
+        )
+    assert Image.open(out_png).size[0] > 800
+    # an inside verdict marks nothing, whatever its W₁
+    code, out, _ = run(capsys, "relate", world["mix"], *sources, *common)
+    assert code == 0 and not relate_output(out)["outside"] and " *" not in out, out
+    # the exact mixtures (--smoothing none) say where too, from the same fixed draws
+    code, out, _ = run(capsys, "relate", world["night"], *sources, *common, "--smoothing", "none", "--points", 16)
+    assert code == 0 and sorted(m["name"] for m in DIFFERENCE.finditer(out)) == sorted(NAMES), out
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
+        (
+            ["relate", "{mix}", "{clear}", "--registry", "{registry}", "--json", "{root}/r.txt"],
+            r"--json .*r\.txt: expected a \.json file name",
+        ),
+        (
+            ["relate", "{mix}", "{clear}", "--registry", "{registry}", "--plot", "{root}/r.jpg"],
+            r"--plot .*r\.jpg: expected a \.png file name",
+        ),
         (
             ["characterize", "{mixed}", "--registry", "{root}/elsewhere/registry"],
             r"elsewhere/reports/task1/champion\.json: no champion yet",

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import math
 import sys
 import warnings
@@ -31,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from components.cli.errors import CLIError
+from components.core.files import atomic_write_bytes
 from components.core.seeding import derive_seed
 
 __all__ = ["add_model_commands", "read_weights_csv"]
@@ -413,6 +415,30 @@ def _fixed_draws(posterior: Any, bags: list[np.ndarray], m: int, seed: int) -> l
     return np.split(draws, np.cumsum([len(b) for b in bags])[:-1])
 
 
+def _print_differences(
+    differences: Sequence[Any], levels: np.ndarray, outside: bool, draws_per_image: int, held: int, alpha: float
+) -> None:
+    """``pidc relate``'s table of where the target differs from the fitted mixture: per parameter the medians, W₁ and
+    its in-ODD level (:mod:`components.domains.difference`), largest W₁ / level first; with an OUTSIDE verdict a * on
+    the parameters beyond their level (what the alarm is about; README "Where the target differs")."""
+    print(
+        f"where the target differs from the fitted mixture Σ λ̂ₖ sourceₖ (marginals of {draws_per_image} "
+        "posterior draws an image):\n"
+        "  medians and W₁ in the parameter's unit; in-ODD: the W₁ that in-ODD targets of "
+        f"{held} images made from the sources\n"
+        f"  (the calibration targets) exceed with probability {alpha:g}"
+        + ("; *: beyond it, what the alarm is about" if outside else "")
+    )
+    print(f"{'parameter':<28}{'target':>9}{'mixture':>9}{'W₁':>9}{'in-ODD':>9}")
+    for j in sorted(range(len(differences)), key=lambda i: -differences[i].wasserstein / levels[i]):
+        diff, level = differences[j], levels[j]
+        label = f"{diff.name} [{diff.unit}]"
+        print(
+            f"{label:<28}{diff.target_median:>9.2f}{diff.mixture_median:>9.2f}{diff.wasserstein:>9.2f}{level:>9.2f}"
+            + (" *" if outside and diff.wasserstein > level else "")
+        )
+
+
 def _cmd_relate(args: argparse.Namespace) -> int:
     """Each folder an equally weighted bag, characterized as the ``task3`` stage does by default (``--smoothing
     scott``: the :class:`components.domains.kernel.KernelDomain` of ``--draws-per-image`` fixed posterior draws per
@@ -420,6 +446,7 @@ def _cmd_relate(args: argparse.Namespace) -> int:
     :class:`components.domains.absolute.Domain`); the verdict is
     :func:`components.domains.relative.calibrate_on_sources`'s detector on :attr:`Relation.relative_gap`."""
     from components.domains.absolute import Domain
+    from components.domains.difference import InOddDifferences, parameter_differences
     from components.domains.kernel import KernelDomain, sources_bandwidth
     from components.domains.relative import calibrate_on_sources, relate
 
@@ -440,11 +467,13 @@ def _cmd_relate(args: argparse.Namespace) -> int:
             f"--calibration-targets must be ≥ {need} for --false-alarm-rate {alpha:g}, got {args.calibration_targets}"
         )
     kernel = args.smoothing == "scott"
-    if kernel:
-        if args.draws_per_image < 2:
-            raise CLIError(f"--draws-per-image must be at least 2 (a bag's spread), got {args.draws_per_image}")
-        if not (0.0 < args.bandwidth_scale < math.inf):
-            raise CLIError(f"--bandwidth-scale must be a positive number, got {args.bandwidth_scale:g}")
+    if args.draws_per_image < 2:
+        raise CLIError(f"--draws-per-image must be at least 2 (a bag's spread), got {args.draws_per_image}")
+    if kernel and not (0.0 < args.bandwidth_scale < math.inf):
+        raise CLIError(f"--bandwidth-scale must be a positive number, got {args.bandwidth_scale:g}")
+    for option, path, suffixes in (("--json", args.json, (".json",)), ("--plot", args.plot, (".png",))):
+        if path is not None and path.suffix.lower() not in suffixes:
+            raise CLIError(f"{option} {path}: expected a {' or '.join(suffixes)} file name")
     listed = [_list([f]) for f in folders]
     model = _load_model(args)
     said: set[str] = set()  # notes said once for the whole command
@@ -455,10 +484,16 @@ def _cmd_relate(args: argparse.Namespace) -> int:
     names = [f.name for f in folders[1:]]
     if len(set(names)) < len(names):
         names = [str(f) for f in folders[1:]]
-    draws, bandwidth = None, None
+    # fixed posterior draws of every image: the kernel densities' support (--smoothing scott) and, for either
+    # smoothing, the marginals that say where the target differs from the sources' fitted mixture
+    draws = _fixed_draws(model.posterior, [b.x for b in bags], args.draws_per_image, seed)
+    bandwidth = None
+    box = model.posterior.box
+    pooled = [d.reshape(-1, d.shape[-1]) for d in draws]
+    in_odd = InOddDifferences(draws[1:], box)  # each parameter's W₁ on the calibration's in-ODD targets
+
     try:
         if kernel:
-            draws = _fixed_draws(model.posterior, [b.x for b in bags], args.draws_per_image, seed)
             bandwidth = args.bandwidth_scale * sources_bandwidth(draws[1:])
             rel = relate(
                 KernelDomain(draws[0], None, bandwidth),
@@ -476,12 +511,15 @@ def _cmd_relate(args: argparse.Namespace) -> int:
             derive_seed(seed, "calibrate"),
             target_size=len(target),
             progress=sys.stderr.isatty(),
-            draws=None if draws is None else draws[1:],
+            draws=draws[1:] if kernel else None,
             bandwidth=bandwidth,
+            on_target=in_odd,
         )
     except ValueError as e:
         raise CLIError(str(e)) from None
     outside = detector.decide(rel.relative_gap)
+    differences = parameter_differences(pooled[0], pooled[1:], rel.weights, box)
+    levels = in_odd.levels(alpha)  # the W₁ that in-ODD targets of this size exceed with probability α
     print(f"target {folders[0]}: {len(target)} images; model {model.name}; {args.points} points (seed {seed})")
     if bandwidth is None:
         print("each folder: the exact mixture of its images' posteriors (--smoothing none)")
@@ -511,10 +549,55 @@ def _cmd_relate(args: argparse.Namespace) -> int:
     )
     if k == 1:
         print("note: one source, so λ̂ = 1; the verdict says whether the target looks like that source")
-    print(
-        f"verdict: {'OUTSIDE the ODD' if outside else 'inside the ODD'} "
-        f"(relative gap {'>' if outside else '≤'} threshold; false-alarm rate {alpha:g})"
-    )
+    _print_differences(differences, levels, outside, args.draws_per_image, held, alpha)
+    verdict = "OUTSIDE the ODD" if outside else "inside the ODD"
+    print(f"verdict: {verdict} (relative gap {'>' if outside else '≤'} threshold; false-alarm rate {alpha:g})")
+    if args.json is not None:
+        report = {
+            "target": {"folder": str(folders[0]), "images": len(target)},
+            "sources": [
+                {"name": n, "folder": str(f), "images": len(src), "weight": float(lam)}
+                for n, f, src, lam in zip(names, folders[1:], sources, rel.weights, strict=True)
+            ],
+            "model": model.name,
+            "seed": seed,
+            "points": args.points,
+            "smoothing": args.smoothing,
+            "draws_per_image": args.draws_per_image,
+            "bandwidth": None if bandwidth is None else dict(zip(box.names, map(float, bandwidth), strict=True)),
+            "gap": float(rel.gap),
+            "relative_gap": float(rel.relative_gap),
+            "degenerate": bool(rel.degenerate),
+            "threshold": float(detector.threshold),
+            "calibration_targets": detector.n_calibration,
+            "calibration_target_images": held,
+            "false_alarm_rate": alpha,
+            "outside": bool(outside),
+            "parameters": {
+                diff.name: {
+                    **diff.to_dict(),
+                    "in_odd_level": level,
+                    "exceeds_in_odd_level": bool(diff.wasserstein > level),
+                }
+                for diff, level in zip(differences, levels, strict=True)
+            },
+        }
+        atomic_write_bytes(args.json, (json.dumps(report, indent=1) + "\n").encode())
+        print(f"wrote {args.json}", file=sys.stderr)
+    if args.plot is not None:
+        from components.plots import relation_marginals, save_figure
+
+        notes = [
+            f"W₁ {q.wasserstein:.3g} {q.unit}{' *' if outside and q.wasserstein > level else ''} (in-ODD ≤ {level:.3g} "
+            f"with prob. {1 - alpha:g})"
+            for q, level in zip(differences, levels, strict=True)
+        ]
+        title = (
+            f"{folders[0].name} against {', '.join(names)} ({model.name}): {verdict} "
+            f"(relative gap {rel.relative_gap:.3g}, threshold {detector.threshold:.3g})"
+        )
+        save_figure(relation_marginals(pooled[0], pooled[1:], rel.weights, names, box, notes, title), args.plot)
+        print(f"wrote {args.plot}", file=sys.stderr)
     return 0
 
 
@@ -594,7 +677,8 @@ def add_model_commands(sub: Any) -> None:
         "--draws-per-image",
         type=int,
         default=RELATE_DEFAULTS["draws_per_image"],
-        help="posterior draws per image behind the kernel density (default %(default)s)",
+        help="posterior draws per image: the kernel density's support (--smoothing scott) and the marginals of the "
+        "per-parameter differences (default %(default)s)",
     )
     p.add_argument(
         "--bandwidth-scale",
@@ -613,5 +697,17 @@ def add_model_commands(sub: Any) -> None:
         type=int,
         default=100,
         help="in-ODD targets held out of the sources to set the threshold (default 100)",
+    )
+    p.add_argument(
+        "--json",
+        type=Path,
+        metavar="FILE.json",
+        help="write the result: λ̂, the gaps, the threshold, the verdict and the per-parameter differences",
+    )
+    p.add_argument(
+        "--plot",
+        type=Path,
+        metavar="FILE.png",
+        help="the target's marginals beside the fitted mixture's and each source's",
     )
     p.set_defaults(func=_cmd_relate)

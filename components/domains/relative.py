@@ -24,7 +24,7 @@ Used by the ``task3`` stage, the scheduled monitoring and the ``pidc`` CLI (``re
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
@@ -385,6 +385,7 @@ def calibrate_on_sources(
     progress: bool = False,
     draws: Sequence[np.ndarray] | None = None,
     bandwidth: np.ndarray | None = None,
+    on_target: Callable[[list[np.ndarray], list[np.ndarray], np.ndarray], None] | None = None,
 ) -> OddDetector:
     """An :class:`OddDetector` on :attr:`Relation.relative_gap`, calibrated on in-ODD targets made from the sources.
 
@@ -429,6 +430,9 @@ def calibrate_on_sources(
             ``(Nₖ, m, d)``, one row per member of source k — with the kernel bandwidth ``(d,)``: the ``task3`` stage's
             smoothing, for a target related to kernel densities of the sources with that bandwidth. Without them, the
             exact mixtures of posteriors.
+        on_target: called after each calibration target is related, with ``(held, kept, weights)``: per source the
+            indices of its members held out into the target and of those kept, and the target's fitted λ̂ ``(K,)``
+            (e.g. to measure, on the same in-ODD targets, another statistic of the target against the sources).
     """
     from components.domains.absolute import Domain
     from components.domains.kernel import KernelDomain
@@ -476,11 +480,13 @@ def calibrate_on_sources(
     for t in steps:
         r = rng(seed, "relative", "calibration", t)
         counts = _held_out_counts(r.dirichlet(np.ones(k)), capacity, int(target_size), r)
-        held, reduced = [], []
+        held, reduced, outs, keeps = [], [], [], []
         for j, (s, members, m) in enumerate(zip(sources, positive, counts, strict=False)):
             w = s.weights[members]
             out = r.choice(members, size=int(m), replace=False, p=w / w.sum()) if m else members[:0]
             keep = np.setdiff1d(np.arange(len(s)), out)
+            outs.append(out)
+            keeps.append(keep)
             if kernel is None:
                 held.append(s.bag[out])
                 reduced.append(Domain(s.posterior, s.bag[keep], s.weights[keep]))
@@ -495,6 +501,8 @@ def calibrate_on_sources(
             target, reduced, n_points, derive_seed(seed, "relative", "calibration", t, "relate"), solver=solver
         )
         gaps[t] = rel.relative_gap
+        if on_target is not None:
+            on_target(outs, keeps, rel.weights)
     return OddDetector.calibrate(gaps, alpha)
 
 

@@ -7,7 +7,7 @@ function returns a :class:`matplotlib.figure.Figure`, written with :func:`save_f
   :func:`coverage_plot` (4th), :func:`superiority_boxplot` (5th), :func:`parameter_heatmaps` (per parameter),
   :func:`truth_profile_plot` (per parameter and true value);
 * Task II: :func:`corner_compare`, :func:`marginals_overlay`, :func:`held_out_curve`, :func:`image_grid`;
-* Task III: :func:`boxplots_by_level`, :func:`roc_curves`;
+* Task III: :func:`boxplots_by_level`, :func:`roc_curves`, :func:`relation_marginals` (one target, ``pidc relate``);
 * training: :func:`loss_curves`;
 * highest-density regions from samples: :func:`hdr_log_threshold` and its 2-D grid counterpart.
 
@@ -24,6 +24,7 @@ from components.plots.marginals import marginal_hdr_histograms, marginal_histogr
 from components.plots.overlay import marginals_overlay
 from components.plots.parameters import parameter_heatmaps
 from components.plots.profile import truth_profile_plot
+from components.plots.relation import relation_marginals
 from components.plots.relative import boxplots_by_level, roc_curves
 from components.plots.training import best_epoch, loss_curves
 
@@ -52,4 +53,5 @@ __all__ = [
     "best_epoch",
     "boxplots_by_level",
     "roc_curves",
+    "relation_marginals",
 ]

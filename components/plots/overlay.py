@@ -4,7 +4,7 @@ Each panel shows one parameter on the prior's range: the estimate P̂_D(W) and t
 (probability density per unit of the parameter), the truth P_D(W) likewise — or, for a parameter the truth holds
 fixed (a point mass: every draw equal), as a vertical line at its value; optionally a reference estimate (e.g. the
 mixture of posteriors beside its deconvolution) dotted. A note per panel (e.g. the Wasserstein distances) goes into
-its title.
+its title. :func:`overlay_marginals` draws any list of weighted samples so (``pidc relate``'s figure too).
 
 Used (through :mod:`components.plots`) by the ``train``, ``evaluate``, ``task2`` and ``task3`` stages and
 the ``pidc`` CLI.
@@ -13,6 +13,7 @@ the ``pidc`` CLI.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -23,10 +24,78 @@ from components.plots.canvas import new_figure
 from components.plots.checks import N_THETA, as_box, as_samples
 from components.plots.labels import parameter_label, unit_symbol
 
-__all__ = ["marginals_overlay"]
+__all__ = ["Marginals", "overlay_marginals", "marginals_overlay"]
 
 _COLOURS = ("#d62728", "#1f5fa8", "#7f7f7f", "#2ca02c")  # truth, estimate, prior, reference
 _STYLES = ("-", "-", "--", ":")
+
+
+@dataclass(frozen=True)
+class Marginals:
+    """One sample's six marginals in an overlay.
+
+    Attributes:
+        samples: ``(n, 6)`` draws, physical units; weights: ``(n,)`` non-negative per draw, or None (equal).
+        label: its legend entry; colour, style, width: its line.
+        point_mass: a parameter whose draws are all equal is drawn as a vertical line at that value (e.g. a truth that
+            holds the parameter fixed) instead of a histogram.
+    """
+
+    samples: object
+    label: str
+    colour: str
+    style: str = "-"
+    width: float = 1.6
+    weights: object | None = None
+    point_mass: bool = False
+
+
+def overlay_marginals(
+    series: Sequence[Marginals],
+    box: Box | None = None,
+    notes: Sequence[str] | None = None,
+    title: str = "",
+    bins: int = 50,
+    legend_columns: int | None = None,
+) -> Figure:
+    """2×3 panels, one per parameter, each with the step histograms (probability density per unit) of every
+    :class:`Marginals` of ``series`` on the box's range (default: the physical ranges), drawn in order; ``notes``:
+    six strings, one per parameter, as the panel titles; one legend below (``legend_columns`` columns, default one
+    per series)."""
+    drawn = [(as_samples(m.samples, m.label), m) for m in series]
+    weights = []
+    for samples, m in drawn:
+        w = None if m.weights is None else np.asarray(m.weights, dtype=np.float64)
+        if w is not None and (w.shape != samples.shape[:1] or not np.all(np.isfinite(w)) or np.any(w < 0)):
+            raise ValueError(f"weights of {m.label!r} must be {samples.shape[0]} non-negative numbers, got {w.shape}")
+        weights.append(w)
+    b = as_box(box)
+    if notes is not None and len(notes) != N_THETA:
+        raise ValueError(f"notes must hold one string per parameter ({N_THETA}), got {len(notes)}")
+    if not (isinstance(bins, (int, np.integer)) and bins >= 2):
+        raise ValueError(f"bins must be an integer >= 2, got {bins!r}")
+    fig = new_figure(12.0, 7.5)
+    axes = fig.subplots(2, 3)
+    for k, ax in enumerate(axes.ravel()):
+        edges = np.linspace(b.low[k], b.high[k], bins + 1)
+        for (s, m), w in zip(drawn, weights, strict=True):
+            col = s[:, k]
+            if m.point_mass and np.ptp(col) == 0.0:  # e.g. the truth holds this parameter fixed
+                ax.axvline(col[0], color=m.colour, linewidth=2)
+                continue
+            density = np.histogram(np.clip(col, b.low[k], b.high[k]), bins=edges, weights=w, density=True)[0]
+            ax.stairs(density, edges, color=m.colour, linestyle=m.style, linewidth=m.width)
+        ax.set_xlim(b.low[k], b.high[k])
+        ax.set_xlabel(parameter_label(k))
+        ax.set_ylabel(f"density [1/{unit_symbol(PREDICTED[k])}]")
+        ax.ticklabel_format(axis="y", style="plain")  # no offset text: it would collide with a multi-line title
+        if notes is not None:
+            ax.set_title(notes[k], fontsize=9)
+        ax.grid(alpha=0.25)
+    handles = [Line2D([], [], color=m.colour, linestyle=m.style, linewidth=m.width, label=m.label) for m in series]
+    fig.legend(handles=handles, loc="outside lower center", ncol=legend_columns or len(series), frameon=False)
+    fig.suptitle(title)
+    return fig
 
 
 def marginals_overlay(
@@ -41,44 +110,19 @@ def marginals_overlay(
     reference: object | None = None,
     reference_label: str = "mixture of posteriors",
 ) -> Figure:
-    """2×3 panels, one per parameter: the marginals of ``truth``, ``estimate`` and ``prior`` (``(n, 6)`` samples each,
-    physical units) overlaid on the box's range (default: the physical ranges), and of ``reference`` (``(n, 6)``,
-    dotted, labelled ``reference_label``) if given. ``notes``: six strings, one per parameter, appended to the panel
-    titles."""
+    """Task II's overlay (:func:`overlay_marginals`): the marginals of ``truth`` (a line where it is fixed),
+    ``estimate`` and ``prior`` (``(n, 6)`` samples each, physical units) on the box's range (default: the physical
+    ranges), and of ``reference`` (``(n, 6)``, dotted, labelled ``reference_label``) if given. ``notes``: six strings,
+    one per parameter, appended to the panel titles."""
     if len(labels) != 3:
         raise ValueError(f"labels must name truth, estimate and prior, got {labels!r}")
-    named = [(truth, "truth"), (estimate, "estimate"), (prior, "prior")]
-    if reference is not None:
-        named.append((reference, "reference"))
-        labels = (*labels, reference_label)
-    samples = [as_samples(s, name) for s, name in named]
-    b = as_box(box)
-    if notes is not None and len(notes) != N_THETA:
-        raise ValueError(f"notes must hold one string per parameter ({N_THETA}), got {len(notes)}")
-    if not (isinstance(bins, (int, np.integer)) and bins >= 2):
-        raise ValueError(f"bins must be an integer >= 2, got {bins!r}")
-    fig = new_figure(12.0, 7.5)
-    axes = fig.subplots(2, 3)
-    for k, ax in enumerate(axes.ravel()):
-        edges = np.linspace(b.low[k], b.high[k], bins + 1)
-        for s, colour, style in zip(samples, _COLOURS, _STYLES, strict=False):
-            col = s[:, k]
-            if s is samples[0] and np.ptp(col) == 0.0:  # the truth holds this parameter fixed: a point mass
-                ax.axvline(col[0], color=colour, linewidth=2)
-                continue
-            density = np.histogram(np.clip(col, b.low[k], b.high[k]), bins=edges, density=True)[0]
-            ax.stairs(density, edges, color=colour, linestyle=style, linewidth=1.6)
-        ax.set_xlim(b.low[k], b.high[k])
-        ax.set_xlabel(parameter_label(k))
-        ax.set_ylabel(f"density [1/{unit_symbol(PREDICTED[k])}]")
-        ax.ticklabel_format(axis="y", style="plain")  # no offset text: it would collide with a multi-line title
-        if notes is not None:
-            ax.set_title(notes[k], fontsize=9)
-        ax.grid(alpha=0.25)
-    handles = [
-        Line2D([], [], color=c, linestyle=s, linewidth=1.6, label=lab)
-        for c, s, lab in zip(_COLOURS, _STYLES, labels, strict=False)
+    given = [(truth, "truth"), (estimate, "estimate"), (prior, "prior"), (reference, "reference")]
+    named = [as_samples(x, name) for x, name in given if x is not None or name != "reference"]
+    labels = (*labels, reference_label)
+    series = [
+        Marginals(samples, label, colour, style, point_mass=i == 0)
+        for i, (samples, label, colour, style) in enumerate(zip(named, labels, _COLOURS, _STYLES, strict=False))
     ]
-    fig.legend(handles=handles, loc="outside lower center", ncol=len(labels), frameon=False)
-    fig.suptitle(title or "Marginals: truth (a line where it is fixed), estimate and prior")
-    return fig
+    return overlay_marginals(
+        series, box, notes, title or "Marginals: truth (a line where it is fixed), estimate and prior", bins
+    )

@@ -168,6 +168,8 @@ def test_characterize_a_folder_with_bad_images(world, capsys, tmp_path):
         5,
         "--samples-out",
         csv_path,
+        "--json",
+        tmp_path / "summaries.json",
     )
     assert code == 0
     blocks = parse_blocks(out)
@@ -188,6 +190,17 @@ def test_characterize_a_folder_with_bad_images(world, capsys, tmp_path):
         "Pillow cannot read (cannot identify image file)",
     ]
     assert "characterized 3 images with cues-tiny (300 draws each, seed 5); skipped 2" in err
+    # --json holds the printed summaries, image by image, with the notes
+    report = json.loads((tmp_path / "summaries.json").read_text())
+    assert report["model"] == "cues-tiny" and report["samples"] == 300 and report["skipped"] == 2
+    assert [i["image"] for i in report["images"]] == good and report["images"][2]["note"].startswith("not square")
+    for item in report["images"]:
+        assert item["hdi_mass"] == 0.6827 and item["draws"] == 300 and list(item["parameters"]) == list(NAMES)
+        for name, row in blocks[item["image"]][1].items():
+            p = item["parameters"][name]
+            assert (p["median"], p["hdi_low"], p["hdi_high"]) == pytest.approx(
+                (row["median"], row["low"], row["high"]), abs=0.006
+            )
     # the draws file holds exactly the draws the table summarizes
     import pandas as pd
 
@@ -333,10 +346,19 @@ def domain_table(out: str) -> tuple[float, dict[str, dict[str, float]]]:
 
 def test_domain_with_equal_weights_a_weights_file_and_a_decaying_stream(world, capsys, tmp_path):
     folder, reg = world["mix"], world["registry"]
-    code, equal, _ = run(capsys, "domain", folder, "--registry", reg, "--samples", 400, "--corner", tmp_path / "d.png")
+    code, equal, _ = run(
+        capsys, "domain", folder, "--registry", reg, "--samples", 400, "--corner", tmp_path / "d.png", "--json",
+        tmp_path / "d.json",
+    )  # fmt: skip
     assert code == 0 and "16 images, equal weights" in equal
     size, rows = domain_table(equal)
     assert size == 16.0
+    report = json.loads((tmp_path / "d.json").read_text())
+    assert report["images"] == 16 and report["effective_size"] == pytest.approx(16.0) and report["draws"] == 400
+    assert report["weighting"] == "equal weights" and list(report["parameters"]) == list(NAMES)
+    for name, row in rows.items():
+        p = report["parameters"][name]
+        assert (p["median"], p["mean"], p["std"]) == pytest.approx((row["median"], row["mean"], row["std"]), abs=0.006)
     assert (tmp_path / "d.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # decay 1 is the equally weighted bag (same draws); decay 0.9: weights ∝ 0.9^age over 16 images
     code, same, _ = run(capsys, "domain", folder, "--registry", reg, "--samples", 400, "--decay", 1)
@@ -480,6 +502,14 @@ def test_relate_says_where_the_target_differs_and_writes_json_and_a_plot(world, 
         (
             ["relate", "{mix}", "{clear}", "--registry", "{registry}", "--json", "{root}/r.txt"],
             r"--json .*r\.txt: expected a \.json file name",
+        ),
+        (
+            ["characterize", "{mixed}", "--registry", "{registry}", "--json", "{root}/c"],
+            r"--json .*c: expected a \.json",
+        ),
+        (
+            ["domain", "{mix}", "--registry", "{registry}", "--json", "{root}/d.csv"],
+            r"--json .*d\.csv: expected a \.json",
         ),
         (
             ["relate", "{mix}", "{clear}", "--registry", "{registry}", "--plot", "{root}/r.jpg"],

@@ -68,3 +68,14 @@ def test_summary_and_table():
     assert "mean" not in format_summary(s, box)
     with pytest.raises(ValueError, match="the box has 6 parameters, the summary 2"):
         format_summary(summarize(draws[:, :2]), box)
+    # as JSON: the same numbers under the box's names and units
+    d = s.to_dict(box)
+    assert d["hdi_mass"] == HDI_MASS and d["draws"] == 4000 and list(d["parameters"]) == list(box.names)
+    sun = d["parameters"]["sun_altitude_angle"]
+    assert sun["unit"] == "deg" and (sun["median"], sun["hdi_low"], sun["hdi_high"]) == (
+        s.median[3],
+        s.low[3],
+        s.high[3],
+    )
+    with pytest.raises(ValueError, match="the box has 6 parameters, the summary 2"):
+        summarize(draws[:, :2]).to_dict(box)

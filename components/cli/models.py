@@ -215,6 +215,17 @@ def _positive(value: int, option: str) -> int:
     return value
 
 
+def _check_json_path(path: Path | None) -> None:
+    if path is not None and path.suffix.lower() != ".json":
+        raise CLIError(f"--json {path}: expected a .json file name")
+
+
+def _write_json(path: Path, report: dict) -> None:
+    """``report`` as indented JSON at ``path`` (atomically; its folder made), and a line on stderr saying so."""
+    atomic_write_bytes(path, (json.dumps(report, indent=1) + "\n").encode())
+    print(f"wrote {path}", file=sys.stderr)
+
+
 def _seed(value: int) -> int:
     if value < 0:
         raise CLIError(f"--seed must be a non-negative integer, got {value}")
@@ -250,6 +261,7 @@ def _cmd_characterize(args: argparse.Namespace) -> int:
     n = _positive(args.samples, "--samples")
     seed = _seed(args.seed)
     _check_corner_path(args.corner)
+    _check_json_path(args.json)
     if args.samples_out is not None:
         try:
             check_draws_path(args.samples_out)
@@ -261,12 +273,15 @@ def _cmd_characterize(args: argparse.Namespace) -> int:
     writer = None if args.samples_out is None else DrawsWriter(args.samples_out, post.box.names)
     corners = _corner_paths(args.corner, paths) if args.corner is not None else {}
     done = 0
+    summaries: list[dict] = []  # for --json
     try:
         for read, bar in _read_batches(model, paths, "characterize", "characterize"):
             for i, path in enumerate(read.paths):
                 draws = post.sample(read.x[i : i + 1], n, derive_seed(seed, "characterize", str(path)))[0]
                 head = f"== {path}" + (f"  (note: {read.notes[i]})" if read.notes[i] else "")
-                _say(bar, f"{head}\n{format_summary(summarize(draws), post.box)}\n")
+                summary = summarize(draws)
+                _say(bar, f"{head}\n{format_summary(summary, post.box)}\n")
+                summaries.append({"image": str(path), "note": read.notes[i] or None, **summary.to_dict(post.box)})
                 if writer is not None:
                     writer.write(str(path), draws)
                 if path in corners:
@@ -284,6 +299,11 @@ def _cmd_characterize(args: argparse.Namespace) -> int:
         writer.close()
         print(f"wrote {writer.rows} draws of {done} images to {writer.path}", file=sys.stderr)
     skipped = len(paths) - done
+    if args.json is not None:
+        _write_json(
+            args.json,
+            {"model": model.name, "seed": seed, "samples": n, "skipped": skipped, "images": summaries},
+        )
     print(
         f"characterized {done} image{'s' * (done != 1)} with {model.name} ({n} draws each, seed {seed})"
         + (f"; skipped {skipped}" if skipped else ""),
@@ -346,6 +366,7 @@ def _cmd_domain(args: argparse.Namespace) -> int:
     n = _positive(args.samples, "--samples")
     seed = _seed(args.seed)
     _check_corner_path(args.corner)
+    _check_json_path(args.json)
     folder = Path(args.folder)
     if not folder.is_dir():
         raise CLIError(f"{folder}: not a folder (pidc domain takes a folder of images)")
@@ -390,7 +411,18 @@ def _cmd_domain(args: argparse.Namespace) -> int:
     box = model.posterior.box
     print(f"domain {folder}: {len(bag.paths)} images, {how}; effective size {_effective_size(domain.weights):.1f}")
     print(f"model {model.name}; {n} draws from the mixture of the posteriors (seed {seed})")
-    print(format_summary(summarize(draws), box, moments=True))
+    summary = summarize(draws)
+    print(format_summary(summary, box, moments=True))
+    if args.json is not None:
+        report = {
+            "folder": str(folder),
+            "images": len(bag.paths),
+            "weighting": how,
+            "effective_size": _effective_size(domain.weights),
+            "model": model.name,
+            "seed": seed,
+        }
+        _write_json(args.json, report | summary.to_dict(box))
     if args.corner is not None:
         _corner(draws, box, f"domain {folder.name} — {model.name}", args.corner)
         print(f"wrote {args.corner}", file=sys.stderr)
@@ -471,9 +503,9 @@ def _cmd_relate(args: argparse.Namespace) -> int:
         raise CLIError(f"--draws-per-image must be at least 2 (a bag's spread), got {args.draws_per_image}")
     if kernel and not (0.0 < args.bandwidth_scale < math.inf):
         raise CLIError(f"--bandwidth-scale must be a positive number, got {args.bandwidth_scale:g}")
-    for option, path, suffixes in (("--json", args.json, (".json",)), ("--plot", args.plot, (".png",))):
-        if path is not None and path.suffix.lower() not in suffixes:
-            raise CLIError(f"{option} {path}: expected a {' or '.join(suffixes)} file name")
+    _check_json_path(args.json)
+    if args.plot is not None and args.plot.suffix.lower() != ".png":
+        raise CLIError(f"--plot {args.plot}: expected a .png file name")
     listed = [_list([f]) for f in folders]
     model = _load_model(args)
     said: set[str] = set()  # notes said once for the whole command
@@ -582,8 +614,7 @@ def _cmd_relate(args: argparse.Namespace) -> int:
                 for diff, level in zip(differences, levels, strict=True)
             },
         }
-        atomic_write_bytes(args.json, (json.dumps(report, indent=1) + "\n").encode())
-        print(f"wrote {args.json}", file=sys.stderr)
+        _write_json(args.json, report)
     if args.plot is not None:
         from components.plots import relation_marginals, save_figure
 
@@ -628,6 +659,9 @@ def add_model_commands(sub: Any) -> None:
         metavar="FILE.png",
         help="corner plot; for several images one per image, named FILE-<image stem>.png",
     )
+    p.add_argument(
+        "--json", type=Path, metavar="FILE.json", help="write each image's summary (median, HDI, mean, std) as JSON"
+    )
     p.set_defaults(func=_cmd_characterize)
 
     p = sub.add_parser("domain", help="a folder of images as one weighted bag: the domain's weather distribution")
@@ -648,6 +682,9 @@ def add_model_commands(sub: Any) -> None:
     _model_options(p)
     p.add_argument("--samples", type=int, default=1000, help="draws from the domain's distribution (default 1000)")
     p.add_argument("--corner", type=Path, metavar="FILE.png", help="corner plot of the domain's distribution")
+    p.add_argument(
+        "--json", type=Path, metavar="FILE.json", help="write the domain's summary (median, HDI, mean, std) as JSON"
+    )
     p.set_defaults(func=_cmd_domain)
 
     p = sub.add_parser("relate", help="a target folder as a mixture of source folders, and the out-of-ODD verdict")

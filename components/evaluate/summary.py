@@ -63,6 +63,27 @@ class Summary:
     mass: float
     draws: int
 
+    def to_dict(self, box: Box) -> dict:
+        """``{"hdi_mass", "draws", "parameters": {name: {"unit", "median", "hdi_low", "hdi_high", "mean", "std"}}}``
+        with ``box``'s names and units in θ's order (for JSON)."""
+        if box.dim != self.median.shape[0]:
+            raise ValueError(f"the box has {box.dim} parameters, the summary {self.median.shape[0]}")
+        columns = {
+            "median": self.median,
+            "hdi_low": self.low,
+            "hdi_high": self.high,
+            "mean": self.mean,
+            "std": self.std,
+        }
+        return {
+            "hdi_mass": self.mass,
+            "draws": self.draws,
+            "parameters": {
+                name: {"unit": unit, **{k: float(v[j]) for k, v in columns.items()}}
+                for j, (name, unit) in enumerate(zip(box.names, box.units, strict=True))
+            },
+        }
+
 
 def summarize(draws: np.ndarray, mass: float = HDI_MASS) -> Summary:
     """Median, ``mass`` HDI (:func:`hdi`), mean and standard deviation (ddof 1; 0 for one draw) of ``(m, d)`` draws."""

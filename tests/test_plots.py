@@ -249,6 +249,9 @@ def _figures():
             theta, theta[::-1] + 5, theta[::2], reference=theta + 10, notes=[f"W₁ {k}" for k in range(6)]
         ),
         "held_out": lambda: plots.held_out_curve(np.r_[-3.0, 0.0, 0.2, 0.3, 0.31, 0.30], 3),
+        "relation": lambda: plots.relation_marginals(
+            theta, [theta[::2], theta[1::2] + 5], [0.3, 0.7], ["a", "b"], notes=[f"W₁ {k}" for k in range(6)]
+        ),
     }
 
 
@@ -351,6 +354,12 @@ _LP = -np.arange(500, dtype=float) / 100
             ValueError,
             r"reference must have shape \(n, 6\)",
         ),
+        (
+            lambda: plots.relation_marginals(_THETA, [_THETA], [0.5, 0.5], ["a"]),
+            ValueError,
+            r"weights must be 1 non-negative numbers",
+        ),
+        (lambda: plots.relation_marginals(_THETA, [_THETA], [1.0], ["a", "b"]), ValueError, "names must name every"),
     ],
 )
 def test_bad_inputs_give_clear_errors(call, error, message):

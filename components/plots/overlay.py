@@ -116,9 +116,11 @@ def marginals_overlay(
     one per parameter, appended to the panel titles."""
     if len(labels) != 3:
         raise ValueError(f"labels must name truth, estimate and prior, got {labels!r}")
-    given = [(truth, "truth"), (estimate, "estimate"), (prior, "prior"), (reference, "reference")]
-    named = [as_samples(x, name) for x, name in given if x is not None or name != "reference"]
-    labels = (*labels, reference_label)
+    given = [(truth, "truth"), (estimate, "estimate"), (prior, "prior")]
+    if reference is not None:
+        given.append((reference, "reference"))
+        labels = (*labels, reference_label)
+    named = [as_samples(x, name) for x, name in given]
     series = [
         Marginals(samples, label, colour, style, point_mass=i == 0)
         for i, (samples, label, colour, style) in enumerate(zip(named, labels, _COLOURS, _STYLES, strict=False))

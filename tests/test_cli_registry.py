@@ -512,8 +512,8 @@ def test_relate_says_where_the_target_differs_and_writes_json_and_a_plot(world, 
             r"--json .*d\.csv: expected a \.json",
         ),
         (
-            ["relate", "{mix}", "{clear}", "--registry", "{registry}", "--plot", "{root}/r.jpg"],
-            r"--plot .*r\.jpg: expected a \.png file name",
+            ["relate", "{mix}", "{clear}", "--registry", "{registry}", "--plot", "{root}/r.xyz"],
+            r"--plot .*r\.xyz: unknown image type '\.xyz'",
         ),
         (
             ["characterize", "{mixed}", "--registry", "{root}/elsewhere/registry"],

@@ -193,14 +193,15 @@ def _read_all(model: Any, paths: list[Path], command: str, desc: str, said: set[
     )
 
 
-def _check_corner_path(path: Path | None) -> None:
+def _check_figure_path(path: Path | None, option: str = "--corner") -> None:
+    """A figure file name whose type matplotlib writes (PNG, PDF, SVG, …), else a one-line error naming ``option``."""
     if path is None:
         return
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     fmt = path.suffix.lstrip(".").lower()
     if fmt not in FigureCanvasAgg.get_supported_filetypes():
-        raise CLIError(f"--corner {path}: unknown image type {path.suffix!r}; use e.g. a .png file")
+        raise CLIError(f"{option} {path}: unknown image type {path.suffix!r}; use e.g. a .png file")
 
 
 def _corner(draws: np.ndarray, box: Any, title: str, path: Path) -> None:
@@ -260,7 +261,7 @@ def _cmd_characterize(args: argparse.Namespace) -> int:
 
     n = _positive(args.samples, "--samples")
     seed = _seed(args.seed)
-    _check_corner_path(args.corner)
+    _check_figure_path(args.corner)
     _check_json_path(args.json)
     if args.samples_out is not None:
         try:
@@ -365,7 +366,7 @@ def _cmd_domain(args: argparse.Namespace) -> int:
 
     n = _positive(args.samples, "--samples")
     seed = _seed(args.seed)
-    _check_corner_path(args.corner)
+    _check_figure_path(args.corner)
     _check_json_path(args.json)
     folder = Path(args.folder)
     if not folder.is_dir():
@@ -504,8 +505,7 @@ def _cmd_relate(args: argparse.Namespace) -> int:
     if kernel and not (0.0 < args.bandwidth_scale < math.inf):
         raise CLIError(f"--bandwidth-scale must be a positive number, got {args.bandwidth_scale:g}")
     _check_json_path(args.json)
-    if args.plot is not None and args.plot.suffix.lower() != ".png":
-        raise CLIError(f"--plot {args.plot}: expected a .png file name")
+    _check_figure_path(args.plot, "--plot")
     listed = [_list([f]) for f in folders]
     model = _load_model(args)
     said: set[str] = set()  # notes said once for the whole command

@@ -10,8 +10,9 @@ splits), rendered three ways:
 - ``native128``: as the pipeline renders them (its cues cache, ``features/cues``);
 - ``aa256``: at 256 × 256, area-resized to 128 × 128;
 - ``mix``: each image (training and validation) the one or the other, with probability ½ (seeded);
-- ``vary``: each scene's images rendered at a size drawn uniformly from ``--vary`` LOW..HIGH pixels (128..384; seeded,
-  one per scene: its geometry is built once at that size), area-resized to 128 × 128.
+- ``vary``: the pipeline's resized renders (``simulator.render_sizes: [LOW, HIGH]`` of ``--vary``, 128..384 by default,
+  :class:`components.simulate.resized.ResizedRenders`): each scene rendered at a height uniform in LOW..HIGH, drawn from
+  its seed, and area-resized to 128 × 128.
 
 Each is scored (:func:`benchmarks.bench_levers.score`) on ``--test-images`` weathers from the prior, one scene each
 (seeds the dataset splits do not use), rendered at every ``--test-sizes`` s and area-resized to 128 × 128: test NLL,
@@ -92,12 +93,24 @@ def render(rows: np.ndarray, seeds: np.ndarray, size, out: int, calibration=None
         return np.concatenate(pool.map(_render, jobs))
 
 
-def scene_sizes(seeds: np.ndarray, low: int, high: int, seed: int) -> np.ndarray:
-    """A render size per image ``(n,)``, uniform in ``low..high`` pixels, one per scene (the images of a scene share
-    its geometry, built once at its size), seeded by ``seed`` and the scene seed alone."""
-    scenes = np.unique(seeds)
-    drawn = seeding.rng(seed, "bench_resolution_training", "vary").integers(low, high + 1, len(scenes))
-    return drawn[np.searchsorted(scenes, seeds)]
+def _render_resized(job: tuple) -> np.ndarray:
+    """Render rows ``(n, 13)`` in their scenes as the pipeline does with ``simulator.render_sizes: [low, high]``."""
+    from components.simulate.resized import ResizedRenders
+
+    sizes, out, rows, seeds = job
+    sim = ResizedRenders(out, out, sizes)
+    return np.stack(
+        [sim.render(dict(zip(weather.ALL_NAMES, r, strict=True)), int(s)) for r, s in zip(rows, seeds, strict=True)]
+    )
+
+
+def render_resized(rows: np.ndarray, seeds: np.ndarray, sizes: tuple[int, int], out: int) -> np.ndarray:
+    """Complete weathers ``(n, 13)`` and scene seeds ``(n,)`` → uint8 images ``(n, out, out, 3)`` of the pipeline's
+    resized renders (:class:`~components.simulate.resized.ResizedRenders`: each scene rendered at a height uniform in
+    ``sizes`` = (low, high), drawn from its seed, and area-resized), in 2 processes."""
+    jobs = [(tuple(sizes), out, rows[i : i + CHUNK], seeds[i : i + CHUNK]) for i in range(0, len(rows), CHUNK)]
+    with Pool(2) as pool:
+        return np.concatenate(pool.map(_render_resized, jobs))
 
 
 def _cues(images: np.ndarray) -> np.ndarray:
@@ -192,14 +205,9 @@ def main(argv: list[str] | None = None) -> None:
     }
     vary = {
         k: cached(
-            f"{k}-{len(theta[k])}-vary{args.vary[0]}-{args.vary[1]}",
+            f"{k}-{len(theta[k])}-resized{args.vary[0]}-{args.vary[1]}",
             lambda s=s, k=k: cues(
-                render(
-                    s.weather[: stop[k]],
-                    s.scene_seed[: stop[k]],
-                    scene_sizes(s.scene_seed[: stop[k]], *args.vary, params.seed),
-                    side,
-                )
+                render_resized(s.weather[: stop[k]], s.scene_seed[: stop[k]], tuple(args.vary), side)
             ),
         )
         for k, s in splits.items()

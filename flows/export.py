@@ -78,6 +78,7 @@ def write_onnx(model_id: str, params_path: str, threads: int | None = None) -> d
             "simulator": params.simulator.backend,
             "height": params.simulator.height,
             "width": params.simulator.width,
+            "render_sizes": None if params.simulator.render_sizes is None else list(params.simulator.render_sizes),
         },
         "metrics": extra.get("metrics", {}),
         "data_hash": extra.get("data_hash"),

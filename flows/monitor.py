@@ -67,9 +67,9 @@ def judge_model(
     _, lp, lp_truth = task1.posterior_draws(model.posterior, x, draw.theta, samples, seed)
     metrics, coverage, _ = task1.task1_metrics(lp, lp_truth, params.box.log_volume(), band)
     metrics |= {"images": len(draw), "samples": samples}
-    size = model.training_size  # images of another size: resized, outside what the calibration covers
-    if size is not None:
-        metrics["resized_images"] = sum(im.shape[:2] != size for im in draw.images)
+    # images of a size the model did not learn from: resized, outside what the calibration covers
+    if model.learned_from is not None:
+        metrics["resized_images"] = sum(not model.learned_size(im.shape[:2]) for im in draw.images)
     return {"model": entry.model, "folder": str(folder), "metrics": metrics, "coverage": coverage.tolist()}
 
 

@@ -21,7 +21,7 @@ from benchmarks.bench_puddles import LEVELS, ideal_errors  # noqa: E402
 from benchmarks.bench_rain import exact_features, knn_error  # noqa: E402
 from benchmarks.bench_rain_pool import calibration_of  # noqa: E402
 from benchmarks.bench_resolution import paired_difference  # noqa: E402
-from benchmarks.bench_resolution_training import render, scene_sizes  # noqa: E402
+from benchmarks.bench_resolution_training import render, render_resized  # noqa: E402
 from benchmarks.bench_scale import SMALL_WIDTHS, WIDTHS, FullResolutionCNN, _parse  # noqa: E402
 from benchmarks.bench_splits import fresh_features, summarize  # noqa: E402
 from components.core.config import load_params  # noqa: E402
@@ -264,26 +264,21 @@ def test_rain_pool_variants_change_only_the_rain() -> None:
             calibration_of(bad)
 
 
-def test_resolution_training_vary_draws_one_size_per_scene() -> None:
-    """``bench_resolution_training``'s ``vary`` renders: one size per scene, uniform over LOW..HIGH (every size drawn,
-    none outside; a χ² test over four equal bands on 4 000 scenes), the same for a scene wherever its images sit;
-    ``render`` with a size per image gives each image its own size's render, area-resized."""
-    from scipy import stats
-
+def test_resolution_training_renders_the_pipelines_resized_renders() -> None:
+    """``bench_resolution_training``'s ``vary`` renders are the pipeline's (``simulator.render_sizes``), whatever the
+    processes; ``render`` with a size per image gives each image its own size's render, area-resized as the CLI
+    resizes a camera's image."""
     from components.core import weather
     from components.features.backbones.imageops import resize_area
+    from components.simulate.resized import ResizedRenders
 
-    seeds = np.repeat(np.arange(4000) * 7 + 11, 3)
-    sizes = scene_sizes(seeds, 128, 135, 2026)
-    assert sizes.min() == 128 and sizes.max() == 135 and set(sizes.tolist()) == set(range(128, 136))
-    assert (sizes.reshape(-1, 3) == sizes[::3, None]).all()
-    shuffled = np.random.default_rng(0).permutation(len(seeds))
-    assert np.array_equal(scene_sizes(seeds[shuffled], 128, 135, 2026), sizes[shuffled])
-    counts = np.bincount(scene_sizes(np.arange(4000), 128, 383, 2026) - 128, minlength=256).reshape(4, 64).sum(axis=1)
-    assert stats.chisquare(counts).pvalue > 0.001
     row = weather.weather_from_theta(np.array([20.0, 10.0, 60.0, 30.0, 40.0, 50.0]), 120.0)
-    weathers = np.stack([weather.weather_array(row)] * 2)
-    images = render(weathers, np.array([5, 6]), np.array([32, 48]), 32)
+    weathers = np.stack([weather.weather_array(row)] * 3)
+    seeds = np.array([5, 6, 7])
+    images = render_resized(weathers, seeds, (40, 56), 32)
+    sim = ResizedRenders(32, 32, (40, 56))
+    assert np.array_equal(images, np.stack([sim.render(row, int(s)) for s in seeds]))
+    images = render(weathers[:2], np.array([5, 6]), np.array([32, 48]), 32)
     assert images.shape == (2, 32, 32, 3)
     assert np.array_equal(images[0], ProceduralSimulator(32, 32).render(row, 5))
     assert np.array_equal(images[1], resize_area(ProceduralSimulator(48, 48).render(row, 6)[None], (32, 32))[0])

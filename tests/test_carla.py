@@ -398,6 +398,7 @@ def test_from_config_carries_every_setting() -> None:
         backend="carla",
         height=96,
         width=160,
+        render_sizes=None,
         carla=CarlaConfig(
             host="10.0.0.7",
             port=3000,

@@ -336,6 +336,45 @@ def test_resize_caveat_once_per_command_and_for_cards_that_do_not_name_their_ima
     assert code == 0 and "learned from" not in err
 
 
+def test_the_command_line_notes_images_outside_a_camera_models_sizes(world, tmp_path, capsys):
+    """`pidc characterize` with a model whose card names resized renders: no note for images of those sizes, one for
+    the renderer's own images."""
+    from components.simulate.procedural import ProceduralSimulator
+    from components.simulate.resized import ResizedRenders
+
+    registry = tmp_path / "registry"
+    folder = registry / "camera"
+    shutil.copytree(world["registry"] / "cues-tiny", folder)
+    card = json.loads((folder / "card.json").read_text())
+    card["model_id"] = "camera"
+    card["training_renders"] |= {"render_sizes": [40, 64]}
+    (folder / "card.json").write_text(json.dumps(card))
+    images = tmp_path / "images"
+    images.mkdir()
+    sim = ResizedRenders(32, 32, (40, 64))
+    h = sim.render_height(1)
+    Image.fromarray(
+        ProceduralSimulator(h, h).render(
+            weather.weather_from_theta(np.array([40.0, 20.0, 70.0, 35.0, 60.0, 50.0]), 120.0), 1
+        )
+    ).save(images / "large.png")
+    Image.fromarray(
+        ProceduralSimulator(32, 32).render(
+            weather.weather_from_theta(np.array([40.0, 20.0, 70.0, 35.0, 60.0, 50.0]), 120.0), 1
+        )
+    ).save(images / "own.png")
+    common = ["--registry", registry, "--model", "camera", "--samples", 50]
+    code, _, err = run(capsys, "characterize", images / "large.png", *common)
+    assert code == 0 and "learned from" not in err
+    code, _, err = run(capsys, "characterize", images / "own.png", images / "large.png", *common)
+    caveats = [line for line in err.splitlines() if "learned from" in line]
+    assert code == 0 and caveats == [
+        "pidc characterize: note: camera learned from renders 40–64 pixels high, area-resized to 32×32; images of "
+        "32×32 are not among them, and the calibration measured in the pipeline does not cover them (BENCHMARKS.md, "
+        '"The same rain at every image size")'
+    ]
+
+
 def domain_table(out: str) -> tuple[float, dict[str, dict[str, float]]]:
     size = float(re.search(r"effective size (\d+\.\d)", out)[1])
     rows = parse_rows(out)

@@ -117,15 +117,20 @@ class _Read:
 
 
 def _resize_caveat(model: Any, sizes: set[tuple[int, int]], converted: bool) -> str | None:
-    """What a posterior of a resized image is worth, for images of ``sizes`` (H, W): a note when a size differs from
-    the model's training images (the card's ``training_renders``), or, for a card that does not name them (exported
-    before pidc recorded it), when the backbone ``converted`` the images to its input; None otherwise."""
-    want = model.training_size
-    other = sorted(s for s in sizes if s != want) if want else (sorted(sizes) if converted else [])
+    """What a posterior of a resized image is worth, for images of ``sizes`` (H, W): a note when a size is not one the
+    model learned from (the card's ``training_renders``), or, for a card that does not name them (exported before pidc
+    recorded it), when the backbone ``converted`` the images to its input; None otherwise."""
+    learned = model.learned_from
+    other = sorted(s for s in sizes if not model.learned_size(s)) if learned else (sorted(sizes) if converted else [])
     if not other:
         return None
     shown = ", ".join(f"{w}×{h}" for h, w in other[:3]) + (" …" if len(other) > 3 else "")
-    learned = f"{want[1]}×{want[0]} renders" if want else "renders of a size its card does not name (re-export it)"
+    if learned and "resized" in learned:  # a model of resized renders (simulator.render_sizes)
+        return (
+            f"{model.name} learned from {learned}; images of {shown} are not among them, and the calibration measured "
+            'in the pipeline does not cover them (BENCHMARKS.md, "The same rain at every image size")'
+        )
+    learned = learned or "renders of a size its card does not name (re-export it)"
     return (
         f"{model.name} learned from {learned}; images of {shown} are area-resized, and the calibration measured in "
         "the pipeline does not cover them: the simulator's own renders made larger and resized gave overconfident "

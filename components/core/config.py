@@ -74,7 +74,28 @@ class SimulatorConfig(_Section):
     backend: Literal["procedural", "carla"]
     height: PositiveInt
     width: PositiveInt
+    #: null: the renderer's own ``height × width`` images; ``[low, high]``: each scene rendered ``low..high`` pixels
+    #: high (drawn from its seed; the width in proportion) and area-resized to ``height × width``, as a camera's
+    #: images are (components/simulate/resized.py); the procedural backend only
+    render_sizes: tuple[PositiveInt, PositiveInt] | None
     carla: CarlaConfig
+
+    @model_validator(mode="after")
+    def _render_sizes(self) -> SimulatorConfig:
+        if self.render_sizes is None:
+            return self
+        low, high = self.render_sizes
+        if self.backend != "procedural":
+            raise ValueError(
+                f"render_sizes {list(self.render_sizes)} needs backend: procedural (a CARLA camera renders at "
+                "height × width); set render_sizes: null"
+            )
+        if not self.height <= low <= high <= 2048:
+            raise ValueError(
+                f"render_sizes [{low}, {high}] must satisfy height ({self.height}) ≤ low ≤ high ≤ 2048: each render "
+                "is shrunk to height × width"
+            )
+        return self
 
 
 class RunnerConfig(_Section):

@@ -9,7 +9,8 @@ reason. :func:`list_images` expands folders (image extensions only, natural sort
 images of equal size into the ``(n, H, W, 3)`` batches a backbone takes (it resizes each batch to its input size).
 
 Used by the ``pidc`` CLI (``characterize``, ``domain``, ``relate``) and the scheduled monitoring's recorded images
-(:mod:`components.monitor.recorded`); no DVC stage reads users' images.
+(:mod:`components.monitor.recorded`); no DVC stage reads users' images. :func:`render_shape` (the shape of a render
+of another height) serves the resized renders (:mod:`components.simulate.resized`) and the model cards that name them.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ __all__ = [
     "list_images",
     "iter_images",
     "group_by_size",
+    "render_shape",
     "map_by_size",
 ]
 
@@ -242,3 +244,9 @@ def map_by_size(images: Sequence[np.ndarray], fn: Callable[[np.ndarray], np.ndar
     if out is None:
         raise ValueError("no images")
     return out
+
+
+def render_shape(height: int, width: int, render: int) -> tuple[int, int]:
+    """The ``(height, width)`` of a render ``render`` pixels high for images of ``height × width``: the same aspect,
+    the width rounded to whole pixels (``simulator.render_sizes``; a model card's ``training_renders``)."""
+    return render, max(width, round(render * width / height))

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from components.core.images import render_shape
 from components.export.runtime import OnnxPosterior
 
 __all__ = ["CHAMPION_POINTER", "RegisteredPosterior", "resolve_model", "read_champion", "load_registered"]
@@ -82,14 +83,42 @@ class RegisteredPosterior:
         return str(self.posterior.card.get("model_id", self.folder.name))
 
     @property
-    def training_size(self) -> tuple[int, int] | None:
-        """(height, width) in pixels of the images the model learned from (the card's ``training_renders``, written by
-        the export stage); None for a card exported before it recorded them. Images of another size are area-resized
-        to the backbone's input, and the pipeline's calibration does not cover them (BENCHMARKS.md, "Images of another
-        resolution")."""
+    def _renders(self) -> tuple[int, int, tuple[int, int] | None] | None:
+        """(height, width, render_sizes) of the card's ``training_renders``; None for a card that does not name them."""
         renders = self.posterior.card.get("training_renders") or {}
-        size = (renders.get("height"), renders.get("width"))
-        return None if None in size else (int(size[0]), int(size[1]))
+        h, w = renders.get("height"), renders.get("width")
+        if h is None or w is None:
+            return None
+        sizes = renders.get("render_sizes")
+        return int(h), int(w), (None if sizes is None else (int(sizes[0]), int(sizes[1])))
+
+    def learned_size(self, size: tuple[int, int]) -> bool | None:
+        """Whether images of ``size = (H, W)`` pixels are of the kind the model learned from (the card's
+        ``training_renders``, written by the export stage); None for a card exported before it recorded them.
+
+        A model of the renderer's own images learned their size alone: images of another size are area-resized to the
+        backbone's input, and the pipeline's calibration does not cover them (BENCHMARKS.md, "Images of another
+        resolution"). A model of resized renders (``simulator.render_sizes: [low, high]``) learned heights low..high
+        at the renders' aspect, but not the renderer's own unresized images (the same section)."""
+        renders = self._renders
+        if renders is None:
+            return None
+        height, width, sizes = renders
+        h, w = int(size[0]), int(size[1])
+        if sizes is None:
+            return (h, w) == (height, width)
+        return sizes[0] <= h <= sizes[1] and (h, w) != (height, width) and (h, w) == render_shape(height, width, h)
+
+    @property
+    def learned_from(self) -> str | None:
+        """The images the model learned from, in words (``"128×128 renders"``); None when its card does not say."""
+        renders = self._renders
+        if renders is None:
+            return None
+        height, width, sizes = renders
+        if sizes is None:
+            return f"{width}×{height} renders"
+        return f"renders {sizes[0]}–{sizes[1]} pixels high, area-resized to {width}×{height}"
 
     def inputs(self, images: np.ndarray, batch_size: int = 256) -> np.ndarray:
         """uint8 images ``(n, H, W, 3)`` → the posterior's input ``x`` (float32)."""

@@ -34,7 +34,12 @@ class Simulator(Protocol):
 
 
 def make_simulator(config) -> Simulator:
-    """The simulator a :class:`components.core.config.SimulatorConfig` names (imported lazily)."""
+    """The simulator a :class:`components.core.config.SimulatorConfig` names (imported lazily): the procedural
+    renderer, its renders resized (``render_sizes``, :class:`~components.simulate.resized.ResizedRenders`) or CARLA."""
+    if config.backend == "procedural" and config.render_sizes is not None:
+        from components.simulate.resized import ResizedRenders
+
+        return ResizedRenders(config.height, config.width, config.render_sizes)
     if config.backend == "procedural":
         from components.simulate.procedural.renderer import ProceduralSimulator
 

@@ -17,23 +17,24 @@ import numpy as np
 
 from components.core import weather
 from components.simulate import dataset
-from components.simulate.procedural import ProceduralSimulator
+from components.simulate.base import Simulator, make_simulator
 
 __all__ = ["render_split"]
 
-#: the worker process's renderer (its scene cache is reused across the jobs of one process)
-_SIM: ProceduralSimulator | None = None
+#: the worker process's simulator and its config (its scene cache is reused across the jobs of one process)
+_SIM: tuple[object, Simulator] | None = None
 
 
-def _render_rows(job: tuple[int, int, np.ndarray, np.ndarray]) -> np.ndarray:
-    """Worker: images ``(k, H, W, 3)`` uint8 of weather rows ``(k, 13)`` in scenes ``(k,)``; job (H, W, rows, scenes)."""
+def _render_rows(job: tuple[object, np.ndarray, np.ndarray]) -> np.ndarray:
+    """Worker: images ``(k, H, W, 3)`` uint8 of weather rows ``(k, 13)`` in scenes ``(k,)``; job (simulator config,
+    rows, scenes)."""
     global _SIM
-    height, width, rows, seeds = job
-    if _SIM is None or (_SIM.height, _SIM.width) != (height, width):
-        _SIM = ProceduralSimulator(height, width)
+    config, rows, seeds = job
+    if _SIM is None or _SIM[0] != config:
+        _SIM = (config, make_simulator(config))
     return np.stack(
         [
-            _SIM.render({n: float(v) for n, v in zip(weather.ALL_NAMES, r, strict=True)}, int(s))
+            _SIM[1].render({n: float(v) for n, v in zip(weather.ALL_NAMES, r, strict=True)}, int(s))
             for r, s in zip(rows, seeds, strict=True)
         ]
     )
@@ -44,14 +45,19 @@ def render_split(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Images ``(size, H, W, 3)`` uint8 and θ ``(size, 6)`` float32 (physical units,
     :data:`~components.core.weather.PREDICTED`) of rows ``start … start + size − 1`` of split ``name``'s plan under
-    root seed ``seed`` (default: ``params.seed``, the pipeline's images), at ``params.simulator``'s size, rendered by
+    root seed ``seed`` (default: ``params.seed``, the pipeline's images), as ``params.simulator`` renders them (its
+    size and ``render_sizes``; the embedded renderer only), rendered by
     ``workers`` processes. Plans are nested prefixes, so a large split can be rendered in consecutive pieces."""
     if size < 1 or workers < 1 or start < 0:
         raise ValueError(
             f"render_split: size and workers must be ≥ 1 and start ≥ 0, got size={size}, workers={workers}, "
             f"start={start}"
         )
-    sim = ProceduralSimulator(params.simulator.height, params.simulator.width)
+    if params.simulator.backend != "procedural":
+        raise ValueError(
+            f"render_split renders with the embedded renderer, not simulator.backend {params.simulator.backend!r}"
+        )
+    sim = make_simulator(params.simulator)
     plan = dataset.plan_split(
         name,
         start + size,
@@ -65,7 +71,7 @@ def render_split(
     chunk = 40 * params.data.images_per_scene  # whole scenes per job: the workers' scene cache is hit
     stop = start + size
     jobs = [
-        (sim.height, sim.width, plan.weather[i : min(i + chunk, stop)], plan.scene_seed[i : min(i + chunk, stop)])
+        (params.simulator, plan.weather[i : min(i + chunk, stop)], plan.scene_seed[i : min(i + chunk, stop)])
         for i in range(start, stop, chunk)
     ]
     with mp.get_context("fork").Pool(workers) as pool:

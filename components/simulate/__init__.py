@@ -6,6 +6,8 @@ import the renderer):
 - :mod:`~components.simulate.base`: ``Simulator`` (the protocol: ``render(weather, scene_seed) → (H, W, 3) uint8``)
   and ``make_simulator(config)``.
 - :mod:`~components.simulate.procedural`: ``ProceduralSimulator(height, width)``, the embedded physical renderer.
+- :mod:`~components.simulate.resized`: ``ResizedRenders``, its camera-like renders (each scene rendered larger and
+  area-resized: ``simulator.render_sizes``), and the exact ``area_resize``.
 - :mod:`~components.simulate.carla`: ``CarlaSimulator``, the CARLA client backend (needs the ``carla`` extra).
 - :mod:`~components.simulate.dataset`: deterministic plans, shards, receipts and manifests of the train/val/test
   splits (``plan_split``, ``render_shard``, ``open_split``, ``Split``).
@@ -14,7 +16,7 @@ import the renderer):
   cue networks' training scripts and the benchmarks).
 
 Used by the ``generate`` stage; ``dataset`` also by every later stage but the export stages, the simulators (``base``,
-``procedural``, ``carla``) also by ``evaluate`` (PPCs) and ``task2`` (its bag); the ``pidc`` CLI imports all of it.
+``procedural``, ``resized``, ``carla``) also by ``evaluate`` (PPCs) and ``task2`` (its bag); the ``pidc`` CLI imports all of it.
 """
 
-__all__ = ["base", "procedural", "carla", "dataset", "contact_sheet", "in_memory"]
+__all__ = ["base", "procedural", "resized", "carla", "dataset", "contact_sheet", "in_memory"]

@@ -68,7 +68,7 @@ def judge_model(
     metrics, coverage, _ = task1.task1_metrics(lp, lp_truth, params.box.log_volume(), band)
     metrics |= {"images": len(draw), "samples": samples}
     # images of a size the model did not learn from: resized, outside what the calibration covers
-    if model.learned_from is not None:
+    if model.training_renders is not None:
         metrics["resized_images"] = sum(not model.learned_size(im.shape[:2]) for im in draw.images)
     return {"model": entry.model, "folder": str(folder), "metrics": metrics, "coverage": coverage.tolist()}
 

@@ -337,8 +337,8 @@ def test_resize_caveat_once_per_command_and_for_cards_that_do_not_name_their_ima
 
 
 def test_the_command_line_notes_images_outside_a_camera_models_sizes(world, tmp_path, capsys):
-    """`pidc characterize` with a model whose card names resized renders: no note for images of those sizes, one for
-    the renderer's own images."""
+    """`pidc characterize` with a model whose card names resized renders: no note for images of those sizes; one note
+    naming the sizes outside them and saying how images of the model's own input size are taken."""
     from components.simulate.procedural import ProceduralSimulator
     from components.simulate.resized import ResizedRenders
 
@@ -363,15 +363,19 @@ def test_the_command_line_notes_images_outside_a_camera_models_sizes(world, tmp_
             weather.weather_from_theta(np.array([40.0, 20.0, 70.0, 35.0, 60.0, 50.0]), 120.0), 1
         )
     ).save(images / "own.png")
+    Image.fromarray(ProceduralSimulator(80, 80).render(weather.weather_from_theta(np.full(6, 30.0), 120.0), 2)).save(
+        images / "huge.png"
+    )
     common = ["--registry", registry, "--model", "camera", "--samples", 50]
     code, _, err = run(capsys, "characterize", images / "large.png", *common)
     assert code == 0 and "learned from" not in err
-    code, _, err = run(capsys, "characterize", images / "own.png", images / "large.png", *common)
+    code, _, err = run(capsys, "characterize", images / "own.png", images / "large.png", images / "huge.png", *common)
     caveats = [line for line in err.splitlines() if "learned from" in line]
     assert code == 0 and caveats == [
         "pidc characterize: note: camera learned from renders 40–64 pixels high, area-resized to 32×32; images of "
-        "32×32 are not among them, and the calibration measured in the pipeline does not cover them (BENCHMARKS.md, "
-        '"The same rain at every image size")'
+        "80×80 are outside them; images of 32×32 are taken as frames already shrunk to it, not as the renderer's own "
+        "renders of that size: the calibration measured in the pipeline covers only what it learned (BENCHMARKS.md, "
+        '"Camera-like renders in the pipeline")'
     ]
 
 

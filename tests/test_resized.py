@@ -168,11 +168,14 @@ def test_a_card_of_resized_renders_covers_their_sizes(tmp_path):
     assert older.learned_size((128, 128)) and not older.learned_size((130, 128))
     camera = model({"simulator": "procedural", "height": 96, "width": 160, "render_sizes": [120, 300]})
     assert camera.learned_size((150, 250)) and camera.learned_size((300, 500))
-    assert not camera.learned_size((96, 160))  # the renderer's own images: not of the kind learned
+    assert camera.learned_size((96, 160))  # frames already shrunk to the model's images
     assert not camera.learned_size((150, 150)) and not camera.learned_size((301, 502))
+    assert not camera.learned_size((110, 183))  # below the lowest render
+    assert camera.training_renders == (96, 160, (120, 300)) and native.training_renders == (128, 128, None)
     assert camera.learned_from == "renders 120–300 pixels high, area-resized to 160×96"
     unknown = model({})
     assert unknown.learned_size((128, 128)) is None and unknown.learned_from is None
+    assert unknown.training_renders is None
 
 
 def test_the_camera_profile_renders_resized_images():

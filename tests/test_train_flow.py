@@ -195,7 +195,12 @@ def test_export_evaluate_champion(project, monkeypatch, capsys):
     assert card["opset"] == 18 and card["versions"]["onnxruntime"] and card["git_commit"] and card["data_hash"]
     assert set(card["metrics"]) >= {"test_nll", "info_gain_nats"} and card["input"]["shape"][1:] == [3, 64, 64]
     sim = load_params(grid).simulator  # the renders the model learned from (pidc's CLI names them when it resizes)
-    assert card["training_renders"] == {"simulator": sim.backend, "height": sim.height, "width": sim.width}
+    assert card["training_renders"] == {
+        "simulator": sim.backend,
+        "height": sim.height,
+        "width": sim.width,
+        "render_sizes": None,
+    }
     model, _ = load_npe(folder / "models/cnn-16/model.pt")
     posterior = OnnxPosterior.load(folder / "registry/cnn-16")
     x = torch.rand(3, 3, 64, 64)

@@ -119,18 +119,28 @@ class _Read:
 def _resize_caveat(model: Any, sizes: set[tuple[int, int]], converted: bool) -> str | None:
     """What a posterior of a resized image is worth, for images of ``sizes`` (H, W): a note when a size is not one the
     model learned from (the card's ``training_renders``), or, for a card that does not name them (exported before pidc
-    recorded it), when the backbone ``converted`` the images to its input; None otherwise."""
-    learned = model.learned_from
-    other = sorted(s for s in sizes if not model.learned_size(s)) if learned else (sorted(sizes) if converted else [])
+    recorded it), when the backbone ``converted`` the images to its input; for a model of resized renders
+    (``simulator.render_sizes``), also when images come at its input size, which it takes as frames already shrunk;
+    None otherwise."""
+    renders = model.training_renders
+    other = sorted(s for s in sizes if not model.learned_size(s)) if renders else (sorted(sizes) if converted else [])
+    shown = ", ".join(f"{w}×{h}" for h, w in other[:3]) + (" …" if len(other) > 3 else "")
+    if renders is not None and renders[2] is not None:  # a model of resized renders
+        notes = [f"images of {shown} are outside them"] if other else []
+        if renders[:2] in sizes:
+            notes.append(
+                f"images of {renders[1]}×{renders[0]} are taken as frames already shrunk to it, not as the renderer's "
+                "own renders of that size"
+            )
+        if not notes:
+            return None
+        return (
+            f"{model.name} learned from {model.learned_from}; {'; '.join(notes)}: the calibration measured in the "
+            'pipeline covers only what it learned (BENCHMARKS.md, "Camera-like renders in the pipeline")'
+        )
     if not other:
         return None
-    shown = ", ".join(f"{w}×{h}" for h, w in other[:3]) + (" …" if len(other) > 3 else "")
-    if learned and "resized" in learned:  # a model of resized renders (simulator.render_sizes)
-        return (
-            f"{model.name} learned from {learned}; images of {shown} are not among them, and the calibration measured "
-            'in the pipeline does not cover them (BENCHMARKS.md, "The same rain at every image size")'
-        )
-    learned = learned or "renders of a size its card does not name (re-export it)"
+    learned = model.learned_from or "renders of a size its card does not name (re-export it)"
     return (
         f"{model.name} learned from {learned}; images of {shown} are area-resized, and the calibration measured in "
         "the pipeline does not cover them: the simulator's own renders made larger and resized gave overconfident "

@@ -83,8 +83,11 @@ class RegisteredPosterior:
         return str(self.posterior.card.get("model_id", self.folder.name))
 
     @property
-    def _renders(self) -> tuple[int, int, tuple[int, int] | None] | None:
-        """(height, width, render_sizes) of the card's ``training_renders``; None for a card that does not name them."""
+    def training_renders(self) -> tuple[int, int, tuple[int, int] | None] | None:
+        """The images the model learned from, as its card's ``training_renders`` (written by the export stage) names
+        them: ``(height, width, render_sizes)``, render_sizes None for the renderer's own ``height × width`` images or
+        ``(low, high)`` for renders low..high pixels high shrunk to that size (``simulator.render_sizes``); None for a
+        card exported before it recorded them."""
         renders = self.posterior.card.get("training_renders") or {}
         h, w = renders.get("height"), renders.get("width")
         if h is None or w is None:
@@ -93,26 +96,27 @@ class RegisteredPosterior:
         return int(h), int(w), (None if sizes is None else (int(sizes[0]), int(sizes[1])))
 
     def learned_size(self, size: tuple[int, int]) -> bool | None:
-        """Whether images of ``size = (H, W)`` pixels are of the kind the model learned from (the card's
-        ``training_renders``, written by the export stage); None for a card exported before it recorded them.
+        """Whether images of ``size = (H, W)`` pixels are of a size the model learned from; None when its card does not
+        name its images (:attr:`training_renders`).
 
         A model of the renderer's own images learned their size alone: images of another size are area-resized to the
         backbone's input, and the pipeline's calibration does not cover them (BENCHMARKS.md, "Images of another
-        resolution"). A model of resized renders (``simulator.render_sizes: [low, high]``) learned heights low..high
-        at the renders' aspect, but not the renderer's own unresized images (the same section)."""
-        renders = self._renders
+        resolution"). A model of resized renders learned frames low..high pixels high at the renders' aspect, shrunk
+        to ``height × width``, so that size too (images taken as already shrunk; the renderer's own unresized images of
+        that size are not what it learned: BENCHMARKS.md, "Camera-like renders in the pipeline")."""
+        renders = self.training_renders
         if renders is None:
             return None
         height, width, sizes = renders
         h, w = int(size[0]), int(size[1])
-        if sizes is None:
-            return (h, w) == (height, width)
-        return sizes[0] <= h <= sizes[1] and (h, w) != (height, width) and (h, w) == render_shape(height, width, h)
+        if (h, w) == (height, width):
+            return True
+        return sizes is not None and sizes[0] <= h <= sizes[1] and (h, w) == render_shape(height, width, h)
 
     @property
     def learned_from(self) -> str | None:
         """The images the model learned from, in words (``"128×128 renders"``); None when its card does not say."""
-        renders = self._renders
+        renders = self.training_renders
         if renders is None:
             return None
         height, width, sizes = renders

@@ -46,8 +46,8 @@ def render_split(
     """Images ``(size, H, W, 3)`` uint8 and θ ``(size, 6)`` float32 (physical units,
     :data:`~components.core.weather.PREDICTED`) of rows ``start … start + size − 1`` of split ``name``'s plan under
     root seed ``seed`` (default: ``params.seed``, the pipeline's images), as ``params.simulator`` renders them (its
-    size and ``render_sizes``; the embedded renderer only), rendered by
-    ``workers`` processes. Plans are nested prefixes, so a large split can be rendered in consecutive pieces."""
+    size and ``render_sizes``; the embedded renderer only), rendered by ``workers`` processes. Plans are nested
+    prefixes, so a large split can be rendered in consecutive pieces."""
     if size < 1 or workers < 1 or start < 0:
         raise ValueError(
             f"render_split: size and workers must be ≥ 1 and start ≥ 0, got size={size}, workers={workers}, "

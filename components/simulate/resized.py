@@ -13,7 +13,7 @@ every stage render so: :func:`components.simulate.base.make_simulator` returns a
 - :class:`ResizedRenders`: the :class:`~components.simulate.base.Simulator` over a procedural renderer per size.
 
 Used through ``make_simulator`` by the ``generate``, ``evaluate`` (PPCs) and ``task2`` stages, the scheduled monitoring
-and the ``pidc`` CLI, when ``simulator.render_sizes`` is set.
+and :func:`components.simulate.in_memory.render_split`, when ``simulator.render_sizes`` is set.
 """
 
 from __future__ import annotations
@@ -47,13 +47,11 @@ def area_weights(n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
     if not 1 <= m <= n:
         raise ValueError(f"area_weights: output size must be within 1..{n} (the input size), got {m}")
     k = -(-n // m) + 1
-    first = (np.arange(m) * n) // m  # the first input pixel that output i overlaps
-    index = np.minimum(first[:, None] + np.arange(k), n - 1)
-    lo = np.maximum(np.arange(m)[:, None] * n, (first[:, None] + np.arange(k)) * m)
-    hi = np.minimum((np.arange(m)[:, None] + 1) * n, (first[:, None] + np.arange(k) + 1) * m)
-    weight = np.clip(hi - lo, 0, None)
-    weight[first[:, None] + np.arange(k) >= n] = 0
-    return index.astype(np.int64), weight.astype(np.int64)
+    out = np.arange(m, dtype=np.int64)[:, None]
+    pixels = (out * n) // m + np.arange(k)  # (m, K): from the first input pixel that output i overlaps
+    overlap = np.minimum((out + 1) * n, (pixels + 1) * m) - np.maximum(out * n, pixels * m)
+    weight = np.where(pixels < n, np.clip(overlap, 0, None), 0)
+    return np.minimum(pixels, n - 1), weight
 
 
 def area_resize(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -70,6 +70,11 @@ def extract_features(backbone_name: str, params_path: str) -> dict:
     backbone = _backbone(
         backbone_name, json.dumps(options, sort_keys=True)
     )  # fails fast: unknown name, missing weights
+    if params.train.mirror and not backbone.trainable and backbone.mirror_index() is None:
+        raise ValueError(  # the train stage would refuse it, after every backbone's features
+            f"train.mirror is true in {stage.params_file}, but the features of backbone {backbone_name!r} do not "
+            "permute under a left-right mirror of the image; set train.mirror: false or take it out of backbones.names"
+        )
     fingerprint = features.output_fingerprint(backbone)
     root = stage.paths.data
     splits = [dataset.open_split(root, s, verify=True) for s in dataset.SPLITS]

@@ -348,3 +348,16 @@ def test_extract_restores_training_mode(textures: np.ndarray) -> None:
     cnn.train()
     _extract(cnn, textures[:2])
     assert cnn.training
+
+
+def test_every_frozen_network_file_is_package_data():
+    """The frozen networks' weights and cards ship with a non-editable install: pyproject lists each of them."""
+    import tomllib
+
+    from components.core.config import PROJECT_ROOT
+
+    folder = PROJECT_ROOT / "components" / "features" / "backbones"
+    shipped = {f.name for f in folder.iterdir() if f.suffix in {".pt", ".json"}}
+    listed = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    assert {"wet_road.pt", "weather_reader.pt", "weather_reader_sun.pt"} <= shipped
+    assert shipped == set(listed["components.features.backbones"])

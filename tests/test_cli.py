@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -71,7 +73,10 @@ def test_render_defaults_to_the_default_profiles_image_size(tmp_path):
         (["render", "--seed", "1", "--set", "fog_density=10"], "weather is missing 'cloudiness'"),
         (["render", "--preset", "clear_noon", "--seed", "1", "--set", "fog=10"], "unknown weather parameter 'fog'"),
         (["render", "--preset", "clear_noon", "--seed", "1", "--set", "fog_density"], "--set expects NAME=VALUE"),
-        (["render", "--preset", "clear_noon", "--seed", "1", "--height", "0"], "--height and --width must be positive"),
+        (
+            ["render", "--preset", "clear_noon", "--seed", "1", "--height", "0"],
+            "--height and --width must be within 16..2048",
+        ),
     ],
 )
 def test_bad_input_is_one_clear_line(args, message, capsys, tmp_path):
@@ -90,3 +95,94 @@ def test_console_script_lists_weather():
     )
     assert r.returncode == 0
     assert "sun_altitude_angle" in r.stdout and "[-90, 90] deg" in r.stdout and "clear_noon" in r.stdout
+
+
+@pytest.mark.parametrize(
+    "size, message",
+    [
+        (
+            ["--height", "1", "--width", "1"],
+            r"--height and --width must be within 16\.\.2048 pixels \(the renderer's sizes\), got --height 1 --width 1",
+        ),
+        (
+            ["--height", "5000"],
+            r"must be within 16\.\.2048 pixels \(the renderer's sizes\), got --height 5000 --width 128",
+        ),
+    ],
+)
+def test_render_sizes_outside_the_renderers_bounds(size, message, capsys, tmp_path):
+    assert main(["render", "--preset", "clear_noon", "--seed", "1", *size, "-o", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and re.search(message, err), err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "name, message",
+    [
+        ("r.jpg", r"-o .*r\.jpg: pidc render writes PNG; use a \.png file name"),
+        ("r", r"-o .*/r: pidc render writes PNG; use a \.png file name"),
+        ("a.png/r.png", r"-o .*a\.png/r\.png: .*a\.png is a file, not a folder"),
+        ("isdir.png", r"-o .*isdir\.png: is a folder; give a file name"),
+    ],
+)
+def test_render_output_that_cannot_be_a_png_file(name, message, capsys, tmp_path):
+    (tmp_path / "a.png").write_bytes(b"")
+    (tmp_path / "isdir.png").mkdir()
+    assert main(["render", "--preset", "clear_noon", "--seed", "1", "-o", str(tmp_path / name)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("pidc render: error: ") and re.search(message, err), err
+    assert (
+        sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "isdir.png"]
+        and (tmp_path / "a.png").stat().st_size == 0
+    )
+
+
+def test_config_check_write_to_a_folder_is_one_line(capsys, tmp_path):
+    params = Path(__file__).resolve().parents[1] / "params.yaml"
+    (tmp_path / "out.yaml").mkdir()
+    assert main(["config", "check", "--params", str(params), "--write", str(tmp_path / "out.yaml")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"pidc config: error: --write {tmp_path / 'out.yaml'}: is a folder; give a file name"
+
+
+def test_a_failed_write_names_the_users_file_not_a_temporary_one(capsys, tmp_path, monkeypatch):
+    """An OSError no early check foresaw (here raised by the PNG writer as os.replace would) is one line naming the
+    option and the user's file, not a traceback with the temporary name."""
+    import components.simulate.contact_sheet as sheet
+
+    target = tmp_path / "r.png"
+
+    def fail(path, image):
+        raise IsADirectoryError(21, "Is a directory", str(tmp_path / ".r.png.1fa1588e.tmp"), None, str(target))
+
+    monkeypatch.setattr(sheet, "save_png", fail)
+    assert main(["render", "--preset", "clear_noon", "--seed", "1", "-o", str(target)]) == 2
+    assert capsys.readouterr().err.strip() == f"pidc render: error: -o {target}: cannot write there (Is a directory)"
+
+    def fail_temporary(path, image):  # the temporary file alone (os.open of it failed)
+        raise FileNotFoundError(2, "No such file or directory", str(tmp_path / ".r.png.1fa1588e.tmp"))
+
+    monkeypatch.setattr(sheet, "save_png", fail_temporary)
+    assert main(["render", "--preset", "clear_noon", "--seed", "1", "-o", str(target)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"pidc render: error: -o {target}: cannot write there (No such file or directory)"
+
+
+def test_out_of_memory_names_the_size_options(capsys, monkeypatch):
+    import components.cli.models as models
+
+    def huge(args):
+        raise MemoryError("Unable to allocate 22.4 GiB for an array with shape (1, 500000000, 6) and data type float64")
+
+    monkeypatch.setattr(models, "cmd_characterize", huge)
+    monkeypatch.setattr(models, "cmd_relate", huge)
+    assert main(["characterize", "a.png", "--samples", "500000000"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "pidc characterize: error: out of memory (could not allocate 22.4 GiB); use smaller sizes: --samples 500000000"
+    )
+    assert main(["relate", "t", "s", "--points", "200000000"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "pidc relate: error: out of memory (could not allocate 22.4 GiB); use smaller sizes: --points 200000000, "
+        "--draws-per-image 64"
+    )

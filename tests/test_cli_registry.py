@@ -12,10 +12,12 @@ through the installed `pidc` console script.
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -332,7 +334,7 @@ def test_resize_caveat_once_per_command_and_for_cards_that_do_not_name_their_ima
         "32×32 are area-resized, and the calibration measured in the pipeline does not cover them: the simulator's own "
         'renders made larger and resized gave overconfident posteriors (BENCHMARKS.md, "Images of another resolution")'
     ]
-    code, _, err = run(capsys, "characterize", world["clear"], "--registry", world["registry"], "--samples", 50)
+    code, _, err = run(capsys, "characterize", world["clear"], "--registry", world["registry"], "--samples", 100)
     assert code == 0 and "learned from" not in err
 
 
@@ -366,7 +368,7 @@ def test_the_command_line_notes_images_outside_a_camera_models_sizes(world, tmp_
     Image.fromarray(ProceduralSimulator(80, 80).render(weather.weather_from_theta(np.full(6, 30.0), 120.0), 2)).save(
         images / "huge.png"
     )
-    common = ["--registry", registry, "--model", "camera", "--samples", 50]
+    common = ["--registry", registry, "--model", "camera", "--samples", 100]
     code, _, err = run(capsys, "characterize", images / "large.png", *common)
     assert code == 0 and "learned from" not in err
     code, _, err = run(capsys, "characterize", images / "own.png", images / "large.png", images / "huge.png", *common)
@@ -476,12 +478,17 @@ def test_relate_gives_weights_gaps_and_a_calibrated_verdict(world, capsys):
     code, out, _ = run(capsys, "relate", world["night"], *sources, *common)
     outside = relate_output(out)
     assert code == 0 and outside["outside"] and outside["relative_gap"] > outside["threshold"], out
-    # identical sources: λ̂ is not unique
+    # sources of identical images (two copies of one folder): λ̂ is not unique
     small = world["mixed"]  # 3 readable images
-    code, out, _ = run(capsys, "relate", small, small, small, *common[:-1], 19)
+    copies = [world["root"] / "copies" / c / "mixed" for c in ("a", "b")]
+    for c in copies:
+        if not c.exists():
+            shutil.copytree(small, c)
+    code, out, _ = run(capsys, "relate", small, *copies, *common[:-1], 19)
     same = relate_output(out)
     assert code == 0 and same["degenerate"] and same["weights"] and not same["outside"]
-    assert str(small) in out  # equal folder names are shown as paths
+    assert str(copies[0]) in out  # equal folder names are shown as paths
+    assert "folders of the same images, or densities that do not reach the target's points" in out
     # one source: λ̂ = 1, the verdict tests likeness (with one source and small bags the relative gap is heavy-tailed,
     # far above 1 at times, so this tiny model's verdict is not asserted, only that it follows the threshold)
     code, out, _ = run(capsys, "relate", world["night"], world["clear"], *common)
@@ -563,11 +570,31 @@ def test_relate_says_where_the_target_differs_and_writes_json_and_a_plot(world, 
             r"elsewhere/reports/task1/champion\.json: no champion yet",
         ),
         (
+            ["characterize", "{mixed}", "--registry", "{root}/nowhere/registry"],
+            r"--registry .*nowhere/registry: no such folder \(in /.*\); run pidc from the project folder or pass "
+            r"--registry PATH",
+        ),
+        (
+            ["characterize", "{mixed}", "--registry", "{mixed}/000.png", "--model", "cues-tiny"],
+            r"--registry .*000\.png: not a folder",
+        ),
+        (
             ["characterize", "{mixed}", "--registry", "{registry}", "--model", "cues-9"],
             r"no exported model 'cues-9' in .*registry \(known: cues-tiny",
         ),
         (["characterize", "{root}/empty", "--registry", "{registry}"], r"empty: no image files in this folder"),
-        (["characterize", "{mixed}", "--registry", "{registry}", "--samples", "0"], "--samples must be a positive"),
+        (
+            ["characterize", "{mixed}", "--registry", "{registry}", "--samples", "0"],
+            r"--samples must be at least 100 for a 68\.27 % HDI .*, got 0",
+        ),
+        (
+            ["characterize", "{mixed}", "--registry", "{registry}", "--samples", "99"],
+            r"--samples must be at least 100 .*, got 99",
+        ),
+        (
+            ["domain", "{mix}", "--registry", "{registry}", "--samples", "1"],
+            r"--samples must be at least 100 .*, got 1",
+        ),
         (
             ["characterize", "{mixed}", "--registry", "{registry}", "--samples-out", "{root}/d.txt"],
             r"--samples-out .*d\.txt: unknown draws file type '\.txt'; use \.csv or \.parquet",
@@ -592,7 +619,9 @@ def test_relate_says_where_the_target_differs_and_writes_json_and_a_plot(world, 
             ["relate", "{mix}", "{clear}", "--registry", "{registry}", "--calibration-targets", "10"],
             r"--calibration-targets must be ≥ 19 for --false-alarm-rate 0\.05, got 10",
         ),
-        (["relate", "{mix}", "{root}/nope", "--registry", "{registry}"], r"nope: not a folder"),
+        (["relate", "{mix}", "{root}/nope", "--registry", "{registry}"], r"nope: no such folder"),
+        (["domain", "{root}/nope", "--registry", "{registry}"], r"nope: no such folder$"),
+        (["relate", "{mix}", "{mixed}/000.png", "--registry", "{registry}"], r"000\.png: not a folder"),
         (
             ["relate", "{mix}", "{clear}", "--registry", "{registry}", "--draws-per-image", "1"],
             r"--draws-per-image must be at least 2",
@@ -605,6 +634,7 @@ def test_relate_says_where_the_target_differs_and_writes_json_and_a_plot(world, 
 )
 def test_user_errors_are_one_clear_line(world, capsys, args, message):
     (world["root"] / "empty").mkdir(exist_ok=True)
+    (world["root"] / "elsewhere" / "registry").mkdir(parents=True, exist_ok=True)  # a registry, but no champion
     code, out, err = run(capsys, *[a.format(**{k: str(v) for k, v in world.items()}) for a in args])
     assert code == 2 and out == ""
     lines = err.strip().splitlines()
@@ -635,7 +665,7 @@ def test_console_script(world, tmp_path):
 
 def test_relate_defaults_are_the_task3_stage_defaults():
     """`pidc relate` relates folders as the task3 stage does by default (params.yaml), whose figures the README reports."""
-    from components.cli.models import RELATE_DEFAULTS
+    from components.cli.relate import RELATE_DEFAULTS
     from components.core.config import load_params
 
     t = load_params(Path(__file__).resolve().parents[1] / "params.yaml").task3
@@ -649,7 +679,7 @@ def test_relate_defaults_are_the_task3_stage_defaults():
 
 def test_relate_draws_are_fixed_per_image_across_folders():
     """An image in two folders gets the same kernel draws in both (equal inputs, one draw per distinct image)."""
-    from components.cli.models import _fixed_draws
+    from components.cli.relate import _fixed_draws
 
     class Shifted:  # q(θ | x) = N(x, I), seeded per call
         def sample(self, x: np.ndarray, m: int, seed: int) -> np.ndarray:
@@ -663,3 +693,316 @@ def test_relate_draws_are_fixed_per_image_across_folders():
     assert not np.array_equal(da[0], da[1])
     again = _fixed_draws(Shifted(), [a, b], 5, seed=3)
     assert all(np.array_equal(x, y) for x, y in zip((da, db), again, strict=True))
+
+
+# --- bad user input (the CLI audit): one clear line, before any work where it can be -----------------------------
+
+
+def small_images(folder: Path, sizes: list[tuple[int, int]]) -> list[Path]:
+    """PNGs of ``(width, height)`` in ``folder`` (uniform grey)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for w, h in sizes:
+        path = folder / f"s{w}x{h}.png"
+        Image.fromarray(np.full((h, w, 3), 120, np.uint8)).save(path)
+        paths.append(path)
+    return paths
+
+
+def test_an_output_that_is_an_input_image_is_refused_before_any_work(world, capsys, tmp_path):
+    folder = tmp_path / "ow"
+    shutil.copytree(world["mix"], folder)
+    image = folder / "c000.png"
+    before = image.read_bytes()
+    reg = ["--registry", world["registry"]]
+    same = folder / ".." / "ow" / "c000.png"  # the same file by another path
+    cases = [
+        (["characterize", image, *reg, "--corner", image], "--corner", image),
+        (["characterize", folder, *reg, "--corner", folder / "c.png"], None, None),
+        (["domain", folder, *reg, "--corner", same], "--corner", same),
+        (["relate", folder, world["clear"], *reg, "--plot", image], "--plot", image),
+        (["relate", world["clear"], folder, *reg, "--plot", same], "--plot", same),
+    ]
+    for args, option, path in cases:
+        if option is None:  # one corner per image, c-<image stem>.png: c-c000.png, here one of the folder's images
+            (folder / "c-c000.png").write_bytes(before)
+            option, path = "--corner", folder / "c-c000.png"
+        code, out, err = run(capsys, *args)
+        assert code == 2 and out == "", err
+        assert err.strip().splitlines() == [
+            f"pidc {args[0]}: error: {option} {path} is one of the input images; choose another file name"
+        ], err
+        assert image.read_bytes() == before
+        (folder / "c-c000.png").unlink(missing_ok=True)
+
+
+@pytest.mark.parametrize(
+    "where, message",
+    [
+        ("{tmp}/a.png/x.{ext}", r"{opt} .*a\.png/x\.{ext}: .*a\.png is a file, not a folder"),
+        ("{tmp}/isdir.{ext}", r"{opt} .*isdir\.{ext}: is a folder; give a file name"),
+        (
+            "/proc/pidc-test/x.{ext}",
+            r"{opt} /proc/pidc-test/x\.{ext}: cannot write there \(No such file or directory\)",
+        ),
+    ],
+)
+def test_unwritable_outputs_are_one_line_before_any_work(world, capsys, tmp_path, where, message):
+    if where.startswith("/proc") and not Path("/proc/self").is_dir():
+        pytest.skip("needs Linux's /proc (a folder no file can be made in)")
+    (tmp_path / "a.png").write_bytes(b"")
+    reg = ["--registry", world["registry"]]
+    cases = [
+        (["characterize", world["clear"] / "000.png", *reg], "--json", "json"),
+        (["characterize", world["clear"] / "000.png", *reg], "--samples-out", "csv"),
+        (["characterize", world["clear"] / "000.png", *reg], "--corner", "png"),
+        (["domain", world["mix"], *reg], "--corner", "png"),
+        (["relate", world["mix"], world["clear"], *reg], "--plot", "png"),
+        (["relate", world["mix"], world["clear"], *reg], "--json", "json"),
+    ]
+    for args, option, ext in cases:
+        path = where.format(tmp=tmp_path, ext=ext)
+        if "isdir" in path:
+            Path(path).mkdir(exist_ok=True)
+        code, out, err = run(capsys, *args, option, path)
+        assert code == 2 and out == "", err  # before any image is read
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and re.search(message.format(opt=option, ext=ext), lines[0]), err
+        assert ".tmp" not in err
+    assert not list(tmp_path.rglob("*.tmp"))  # no probe file left behind
+
+
+def test_images_below_the_backbones_minimum_are_skipped(world, capsys, tmp_path):
+    """The cues refuse images under 8×8 pixels: such a file is skipped with one line; the run goes on."""
+    folder = tmp_path / "small"
+    tiny = small_images(folder, [(1, 1), (4, 6)])
+    shutil.copy(world["clear"] / "000.png", folder / "good.png")
+    reg = ["--registry", world["registry"]]
+    code, out, err = run(capsys, "characterize", folder, *reg, "--samples", 100)
+    skipped = [line for line in err.splitlines() if line.startswith("pidc characterize: skipped")]
+    assert code == 0 and list(parse_blocks(out)) == [str(folder / "good.png")], err
+    assert skipped == [
+        f"pidc characterize: skipped {tiny[0]}: 1×1 pixels; model cues-tiny needs images of at least 8×8",
+        f"pidc characterize: skipped {tiny[1]}: 4×6 pixels; model cues-tiny needs images of at least 8×8",
+    ]
+    assert "characterized 1 image with cues-tiny (100 draws each, seed 0); skipped 2" in err
+    code, out, err = run(capsys, "domain", folder, *reg, "--samples", 100)
+    assert code == 0 and "1 image, equal weights" in out and err.count("needs images of at least 8×8") == 2, err
+    code, out, err = run(capsys, "characterize", tiny[0], *reg)
+    assert code == 2 and err.strip().splitlines()[-1] == "pidc characterize: error: none of the 1 images could be read"
+
+
+def test_relate_refuses_a_verdict_when_the_kernels_do_not_overlap(world, capsys):
+    """A tiny --bandwidth-scale: kernel densities that no longer overlap make every in-ODD gap ≈ 1 (the threshold
+    saturates), and any target would be "inside": refused, naming --bandwidth-scale. Out-of-range densities at the
+    extremes: an error naming it, and no numpy warning on the terminal."""
+    common = ["--registry", world["registry"], "--calibration-targets", 19]
+    sources = [world["clear"], world["overcast"]]
+    code, out, err = run(capsys, "relate", world["night"], *sources, *common, "--bandwidth-scale", 0.01)
+    assert code == 2 and out == "", err
+    assert re.fullmatch(
+        r"pidc relate: error: --bandwidth-scale 0\.01 is too small: the kernel densities of the folders do not overlap, "
+        r"so in-ODD targets .* relative gaps near 1 \(threshold (1|0\.9[89]\d*|1\.0[0-2]\d*)\), .* no verdict is "
+        r"possible; use a value near the default 3",
+        err.strip().splitlines()[-1],
+    ), err
+    for scale in ("1e-300", "1e300"):
+        with warnings.catch_warnings(record=True) as leaked:
+            warnings.simplefilter("always")
+            code, out, err = run(capsys, "relate", world["mix"], *sources, *common, "--bandwidth-scale", scale)
+        assert code == 2 and out == "", err
+        lines = [line for line in err.strip().splitlines() if "note: backbone" not in line]
+        assert len(lines) == 1 and lines[0].startswith(f"pidc relate: error: --bandwidth-scale {float(scale):g} "), err
+        assert "use a value near the default 3" in lines[0]
+        assert not [w for w in leaked if issubclass(w.category, RuntimeWarning)]
+
+
+def test_relate_bandwidth_scale_is_checked_with_smoothing_none_too(world, capsys):
+    common = ["--registry", world["registry"], "--calibration-targets", 19, "--smoothing", "none", "--points", 16]
+    code, out, err = run(capsys, "relate", world["mix"], world["clear"], *common, "--bandwidth-scale", -1)
+    assert code == 2 and out == "" and "--bandwidth-scale must be a positive number, got -1" in err
+    code, out, err = run(capsys, "relate", world["mix"], world["clear"], *common, "--bandwidth-scale", 2)
+    assert code == 0 and "verdict:" in out
+    assert "pidc relate: note: --bandwidth-scale is ignored with --smoothing none (no kernel)" in err
+    code, out, err = run(capsys, "relate", world["mix"], world["clear"], *common)
+    assert code == 0 and "--bandwidth-scale" not in err
+
+
+@pytest.mark.parametrize(
+    "folders, message",
+    [
+        (["{mix}", "{mix}"], r"the target folder .*mix is also given as a source$"),
+        (["{mix}", "{clear}", "{clear}/"], r"source folder .*clear is given twice$"),
+        (
+            ["{mix}", "{clear}", "{root}/clear/../overcast", "{overcast}"],
+            r"source folder .*overcast is given twice \(as ",
+        ),
+        (
+            ["{mix}", "{clear}", "{root}/mix/../mix"],
+            r"the target folder .*mix is also given as a source \(.*\.\./mix\)",
+        ),
+    ],
+)
+def test_relate_refuses_a_folder_given_twice(world, capsys, folders, message):
+    args = [f.format(**{k: str(v) for k, v in world.items()}) for f in folders]
+    code, out, err = run(capsys, "relate", *args, "--registry", world["registry"])
+    lines = err.strip().splitlines()
+    assert code == 2 and out == "" and len(lines) == 1 and re.search(message, lines[0]), err
+
+
+def test_relate_names_the_folder_of_no_readable_image_and_one_image_sources(world, capsys, tmp_path):
+    bad = tmp_path / "allbad"
+    bad.mkdir()
+    (bad / "a.png").write_bytes(b"")
+    (bad / "b.png").write_text("not an image")
+    reg = ["--registry", world["registry"]]
+    code, _, err = run(capsys, "relate", world["mix"], world["clear"], bad, *reg)
+    assert (
+        code == 2 and err.strip().splitlines()[-1] == f"pidc relate: error: {bad}: none of its 2 images could be read"
+    )
+    code, _, err = run(capsys, "domain", bad, *reg)
+    assert (
+        code == 2 and err.strip().splitlines()[-1] == f"pidc domain: error: {bad}: none of its 2 images could be read"
+    )
+    ones = []
+    for name in ("one1", "one2"):
+        (tmp_path / name).mkdir()
+        shutil.copy(world["clear"] / f"00{len(ones)}.png", tmp_path / name / "a.png")
+        ones.append(tmp_path / name)
+    code, out, err = run(capsys, "relate", world["mix"], *ones, *reg)
+    assert code == 2 and out == "", err
+    assert err.strip().splitlines()[-1] == (
+        "pidc relate: error: every source folder has only 1 readable image (one1: 1, one2: 1); at least one source "
+        "folder needs 2 or more images to calibrate the threshold (its in-ODD targets are images held out of the "
+        "sources)"
+    )
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"c000.png,abc\no000.png,2\n", r"w\.csv line 1: weight 'abc' of 'c000\.png' is not a number"),
+        (b"c000.png,0x10\n", r"w\.csv line 1: weight '0x10' of 'c000\.png' is not a number"),
+        (b"c000,abc\n", r"w\.csv: no weights"),  # a header (no image name), then nothing
+        (b"\xff\xfe\x00junk,1\n", r"w\.csv: not a UTF-8 text CSV file \(byte 0xff at position 0\)"),
+    ],
+)
+def test_domain_weights_header_and_encoding(world, capsys, tmp_path, content, message):
+    (tmp_path / "w.csv").write_bytes(content)
+    code, out, err = run(
+        capsys, "domain", world["mix"], "--registry", world["registry"], "--weights", tmp_path / "w.csv"
+    )
+    lines = err.strip().splitlines()
+    assert code == 2 and out == "" and len(lines) == 1 and re.search(message, lines[0]), err
+
+
+def test_domain_weights_after_comments_and_huge_weights(world, capsys, tmp_path):
+    reg = ["--registry", world["registry"], "--samples", 100]
+    weights = tmp_path / "w.csv"
+    weights.write_text("# weights of the mix\n\nimage,weight\nc000.png,1\no004.png,3\n")
+    code, out, err = run(capsys, "domain", world["mix"], *reg, "--weights", weights)
+    assert code == 0 and "2 images, weights from" in out, err
+    assert domain_table(out)[0] == pytest.approx(16 / 10, abs=0.05)
+    # only the weights' ratios matter: 1e308 twice (a sum that overflows) is two equal weights
+    weights.write_text("c000.png,1e308\no004.png,1e308\n")
+    code, huge, err = run(capsys, "domain", world["mix"], *reg, "--weights", weights)
+    assert code == 0 and domain_table(huge)[0] == 2.0, err
+    weights.write_text("c000.png,1\no004.png,1\n")
+    code, equal, _ = run(capsys, "domain", world["mix"], *reg, "--weights", weights)
+    assert code == 0 and parse_rows(huge) == parse_rows(equal)
+    # a folder is not a weights file
+    code, _, err = run(capsys, "domain", world["mix"], *reg, "--weights", tmp_path)
+    assert code == 2 and err.strip() == f"pidc domain: error: --weights {tmp_path}: is a folder, not a weights file"
+
+
+def test_the_same_image_twice_is_characterized_once(world, capsys, tmp_path):
+    image = world["clear"] / "000.png"
+    reg = ["--registry", world["registry"], "--samples", 100]
+    code, out, err = run(
+        capsys, "characterize", image, image, *reg, "--corner", tmp_path / "c.png", "--samples-out", tmp_path / "d.csv"
+    )
+    assert code == 0 and list(parse_blocks(out)) == [str(image)], err
+    assert f"pidc characterize: note: {image} is given twice: taken once" in err
+    assert [p.name for p in sorted(tmp_path.iterdir())] == ["c.png", "d.csv"]  # one image: the named corner
+    assert f"wrote 100 draws of 1 image to {tmp_path / 'd.csv'}" in err
+    # a folder and one of its images
+    code, out, err = run(capsys, "characterize", world["mixed"], world["mixed"] / ".." / "mixed" / "001.png", *reg)
+    assert code == 0 and len(parse_blocks(out)) == 3
+    assert f"is given twice (as {world['mixed'] / '001.png'}): taken once" in err
+
+
+def test_what_is_not_a_regular_file_is_skipped(world, capsys, tmp_path):
+    if not hasattr(os, "mkfifo"):
+        pytest.skip("no named pipes here")
+    fifo = tmp_path / "fifo.png"
+    os.mkfifo(fifo)
+    code, out, err = run(
+        capsys, "characterize", fifo, world["clear"] / "000.png", "--registry", world["registry"], "--samples", 100
+    )
+    assert code == 0 and len(parse_blocks(out)) == 1
+    assert f"pidc characterize: skipped {fifo}: not a regular file (a named pipe (FIFO))" in err
+
+
+def test_library_warnings_while_reading_become_notes(world, capsys, monkeypatch):
+    """Pillow's DecompressionBombWarning (here for a 32×32 image under a lowered limit) is a note, not a warning."""
+    from PIL import Image as PILImage
+
+    monkeypatch.setattr(PILImage, "MAX_IMAGE_PIXELS", 600)  # 1024 pixels: over it, under twice it (no error)
+    image = world["clear"] / "000.png"
+    with warnings.catch_warnings(record=True) as leaked:
+        warnings.simplefilter("always")
+        code, _, err = run(capsys, "characterize", image, "--registry", world["registry"], "--samples", 100)
+    assert code == 0 and f"pidc characterize: note: {image}: Image size (1024 pixels) exceeds limit of 600" in err
+    assert not [w for w in leaked if "DecompressionBomb" in w.category.__name__]
+
+
+def test_size_notes_say_width_by_height_and_name_a_squash(world, capsys, tmp_path):
+    reg = ["--registry", world["registry"], "--samples", 100]
+    code, _, err = run(capsys, "characterize", world["mixed"] / "002.jpg", *reg)  # 48 wide, 32 high
+    assert (
+        code == 0
+        and (
+            "pidc characterize: note: backbone 'cues': converting 48×32 images (width×height) to its input size 128×128"
+        )
+        in err
+    ), err
+    (strip,) = small_images(tmp_path, [(200, 10)])
+    code, out, _ = run(capsys, "characterize", strip, *reg)
+    head = parse_blocks(out)[str(strip)][0]
+    assert code == 0 and "squashed: the resize to the backbone's 128×128 input changes its aspect ratio 20-fold" in head
+
+
+def test_model_names_that_are_empty_or_malformed_uris(world, capsys):
+    for model, message in [
+        ("", "--model is empty; give champion, a model id, an exported folder or a models:/ URI"),
+        ("models:/", "--model models:/: malformed models:/ URI; expected models:/NAME/VERSION"),
+        ("models:/pidc/1/2", "--model models:/pidc/1/2: malformed models:/ URI"),
+        ("models:/pidc@", "--model models:/pidc@: malformed models:/ URI"),
+    ]:
+        code, out, err = run(capsys, "characterize", world["mixed"], "--registry", world["registry"], "--model", model)
+        assert code == 2 and out == "" and err.strip().startswith(f"pidc characterize: error: {message}"), err
+
+
+def test_a_models_uri_download_is_removed_after_loading(world, capsys, tmp_path, monkeypatch):
+    """`--model models:/…` downloads the model to a temporary folder: removed once loaded, and after a failure."""
+    import tempfile
+
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
+    calls = []
+
+    def download(cmd, **kwargs):  # stands for `mlflow artifacts download`: the export's extra_files
+        calls.append(cmd)
+        shutil.copytree(world["registry"] / "cues-tiny", Path(cmd[cmd.index("--dst-path") + 1]) / "extra_files")
+        return subprocess.CompletedProcess(cmd, 0, "", "")
+
+    monkeypatch.setattr(subprocess, "run", download)
+    code, out, err = run(
+        capsys, "characterize", world["clear"] / "000.png", "--model", "models:/pidc@champion", "--samples", 100
+    )
+    assert code == 0 and len(parse_blocks(out)) == 1 and len(calls) == 1, err
+    assert list(temp.iterdir()) == []
+    monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: subprocess.CompletedProcess(cmd, 1, "", "no such model"))
+    code, _, err = run(capsys, "characterize", world["clear"] / "000.png", "--model", "models:/pidc@nobody")
+    assert code == 2 and "not found in the MLflow store" in err and list(temp.iterdir()) == []

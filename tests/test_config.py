@@ -285,6 +285,45 @@ def test_unknown_key_is_named():
         (lambda d: d["monitor"].update(false_alarm_targets=-1), r"monitor\.false_alarm_targets"),
         (lambda d: d["monitor"].update(source=" recorded/"), r"monitor\.source: .*without surrounding spaces"),
         (lambda d: d["monitor"].update(images=0), r"monitor\.images: Input should be greater than 0"),
+        # numbers are finite, counts integers and switches booleans: YAML's yes/no and quoted numbers are refused
+        (lambda d: d["train"].update(lr=math.inf), r"train\.lr: Input should be a finite number"),
+        (lambda d: d["task2"]["modes"][0].update(mean=[math.nan, 20]), r"task2\.modes\.0\.mean\.0: .*finite"),
+        (lambda d: d["train"].update(compile_min_steps=False), r"train\.compile_min_steps: .*valid integer"),
+        (lambda d: d["train"].update(epochs=True), r"train\.epochs: .*valid integer"),
+        (lambda d: d["data"]["splits"].update(val="6000"), r"data\.splits\.val: .*valid integer"),
+        (lambda d: d["train"].update(mirror="yes"), r"train\.mirror: .*valid boolean"),
+        (lambda d: d["train"].update(lr=True), r"train\.lr: must be a number, got True"),
+        (lambda d: d["simulator"].update(height=8), r"simulator\.height: .*greater than or equal to 16"),
+        (lambda d: d["simulator"].update(width=4096), r"simulator\.width: .*less than or equal to 2048"),
+        (lambda d: d["simulator"].update(render_sizes=[200]), r"simulator\.render_sizes: too few items"),
+        (lambda d: d["prior"].pop("wind_intensity"), r"prior: missing wind_intensity: the prior needs"),
+        (lambda d: d["backbones"].update(names=["cues", "abc"]), r"backbones\.names\.1: Input should be 'cues'"),
+        (lambda d: d["backbones"].update(names=[]), r"backbones\.names: .*at least 1"),
+        (lambda d: d["backbones"].update(names=["cues", "cues"]), r"backbones\.names: each value at most once"),
+        (lambda d: d["train"].update(sizes=[]), r"train\.sizes: .*at least 1"),
+        (lambda d: d["train"].update(sizes=[5000, 5000]), r"train\.sizes: each value at most once"),
+        (lambda d: d["train"]["flow"].update(passes=1), r"train\.flow\.passes: .*greater than or equal to 2"),
+        (lambda d: d["train"].update(experiment=""), r"train\.experiment: .*at least 1 character"),
+        (lambda d: d["data"].update(root=""), r"data\.root: .*at least 1 character"),
+        (lambda d: d["task3"].update(model=" champion"), r"task3\.model: .*without surrounding spaces"),
+        (
+            lambda d: d["data"]["runner"].update(dask_address="tcp://x:8786"),
+            r"data\.runner: dask_address 'tcp://x:8786' is set but kind is 'processes'",
+        ),
+        (lambda d: d["task2"].update(modes=[]), r"task2\.modes: .*at least 1"),
+        (
+            lambda d: d["task2"]["modes"][1].update(mean=[60, 140]),
+            r"task2\.modes\.1\.mean: precipitation = 140 lies outside the prior \[0, 100\]",
+        ),
+        (
+            lambda d: d["task2"].update(estimate="deconvolved", images=3),
+            r"task2: deconvolution\.folds = 5 exceeds images = 3",
+        ),
+        (lambda d: d["task3"].update(etas=[0, 0.1, 0.1000001]), r"task3: etas repeats 0\.1"),
+        (
+            lambda d: d["task3"].update(calibration_targets=18),
+            r"task3: calibration_targets = 18 is too few for false_alarm_rate = 0\.05: .*needs n ≥ 19",
+        ),
     ],
 )
 def test_bad_values_are_named(edit, message):
@@ -294,6 +333,56 @@ def test_bad_values_are_named(edit, message):
         parse_params(d, source="params.yaml")
 
 
+def test_the_least_calibration_targets_suffice():
+    """The smallest count the validator accepts is one the ODD decision can calibrate on, for several α."""
+    from components.domains.relative import OddDetector
+
+    for alpha in (0.05, 0.1, 0.2, 0.01):
+        d = _default()
+        d["task3"]["false_alarm_rate"] = alpha
+        need = next(n for n in range(1, 1000) if _accepts(d, n))
+        OddDetector.calibrate(np.linspace(0.0, 1.0, need), alpha)  # does not raise
+        with pytest.raises(ValueError, match="too few"):
+            OddDetector.calibrate(np.linspace(0.0, 1.0, need - 1), alpha)
+
+
+def _accepts(d: dict, calibration_targets: int) -> bool:
+    d["task3"]["calibration_targets"] = calibration_targets
+    try:
+        parse_params(d)
+    except ConfigError:
+        return False
+    return True
+
+
+def test_the_backbone_names_are_the_registry_s():
+    """The config's list of backbone names is components.features.backbones' registry, in its order."""
+    import typing
+
+    from components.core.config import BackboneName
+    from components.features.backbones import available
+
+    assert list(typing.get_args(BackboneName)) == available()
+
+
+def test_a_key_written_twice_is_named(tmp_path: Path):
+    """PyYAML keeps the last of two equal keys silently; the config refuses the file, in params.yaml and profiles."""
+    text = (PROJECT_ROOT / "params.yaml").read_text()
+    assert "\n  epochs: 60\n" in text
+    path = tmp_path / "params.yaml"
+    path.write_text(text.replace("\n  epochs: 60\n", "\n  epochs: 60\n  epochs: 3\n"))
+    line = text[: text.index("\n  epochs: 60\n")].count("\n") + 2
+    with pytest.raises(
+        ConfigError, match=rf"params\.yaml: line {line + 1}: epochs appears twice .*first at line {line}"
+    ):
+        load_params(path)
+    shutil.copy(PROJECT_ROOT / "params.yaml", path)
+    (tmp_path / "profiles").mkdir()
+    (tmp_path / "profiles" / "twice.yaml").write_text("train:\n  epochs: 5\ntrain:\n  batch_size: 64\n")
+    with pytest.raises(ConfigError, match=r"twice\.yaml: line 3: train appears twice .*first at line 1"):
+        load_params(path, profile="twice")
+
+
 def test_unreadable_and_invalid_files(tmp_path: Path):
     with pytest.raises(ConfigError, match="cannot read params file"):
         load_params(tmp_path / "nope.yaml")
@@ -301,6 +390,10 @@ def test_unreadable_and_invalid_files(tmp_path: Path):
     bad.write_text("data: [unclosed")
     with pytest.raises(ConfigError, match="not valid YAML"):
         load_params(bad)
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(b"\xff\xfe\x00seed: 1")
+    with pytest.raises(ConfigError, match=r"binary\.yaml: cannot read params file: not UTF-8 text \(byte 0xff at 0\)"):
+        load_params(binary)
 
 
 def test_seed_streams_are_deterministic_and_independent():

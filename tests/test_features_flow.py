@@ -82,3 +82,22 @@ def test_unknown_backbone_is_named(generated):
     _, params = generated
     with pytest.raises(ValueError, match=r"backbone 'resnet' is not in backbones.names"):
         extract_features("resnet", str(params))
+
+
+def test_mirrored_training_with_a_backbone_that_cannot_mirror_is_refused_before_its_features(
+    generated, tmp_path, tiny_checkpoint
+):
+    """train.mirror needs features that permute under a mirror; a pretrained backbone's do not. The features stage
+    says so before computing anything, not the train stage after every backbone's features."""
+    from flows.features import extract_features
+
+    folder, params = generated
+    tiny_checkpoint("resnet50", tmp_path / "weights" / "resnet50", 7)
+    p = yaml.safe_load(params.read_text())
+    p["backbones"].update(names=["cues", "resnet50"], pretrained_dir=str(tmp_path / "weights"))
+    p["train"].update(mirror=True, variants={})
+    mirrored = folder / "params-mirror.yaml"
+    mirrored.write_text(yaml.safe_dump(p, sort_keys=False))
+    with pytest.raises(ValueError, match=r"train\.mirror is true .* backbone 'resnet50' do not permute"):
+        extract_features("resnet50", str(mirrored))
+    assert not (folder / "features" / "resnet50").exists()

@@ -144,6 +144,11 @@ def test_odd_sizes_are_read_with_a_note(tmp_path):
     assert image.shape == (8, 5, 3) and note == "very small (5×8 pixels)"
     Image.fromarray(rgb(1, 1)).save(tmp_path / "one.png")
     assert read_image(tmp_path / "one.png")[0].shape == (1, 1, 3)
+    Image.fromarray(rgb(10, 2000)).save(tmp_path / "strip.png")  # wide, not small: it is the height that is short
+    image, note = read_image(tmp_path / "strip.png")
+    assert note == "only 10 pixels high (2000×10 pixels): the backbone stretches it to its square input"
+    Image.fromarray(rgb(300, 20)).save(tmp_path / "pole.png")
+    assert read_image(tmp_path / "pole.png")[1].startswith("only 20 pixels wide (20×300 pixels)")
 
 
 def _truncated(path: Path, fmt: str) -> None:

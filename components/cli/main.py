@@ -12,7 +12,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from components.cli.errors import CLIError
+from components.cli.outputs import check_output, memory_error_line, os_error_line
 from components.core import weather
+from components.core.images import RENDER_SIDES
 
 #: Named starting weathers for ``pidc render --preset`` (pidc's own, in the spirit of CARLA's presets).
 PRESETS: dict[str, dict[str, float]] = {
@@ -106,8 +108,15 @@ def _cmd_render(args: argparse.Namespace) -> int:
         w = weather.complete_weather(w)
     except ValueError as e:
         raise CLIError(f"{e} (set it with --set NAME=VALUE or start from --preset)") from None
-    if args.height <= 0 or args.width <= 0:
-        raise CLIError(f"--height and --width must be positive, got {args.height}×{args.width}")
+    low, high = RENDER_SIDES
+    if not (low <= args.height <= high and low <= args.width <= high):
+        raise CLIError(
+            f"--height and --width must be within {low}..{high} pixels (the renderer's sizes), got --height "
+            f"{args.height} --width {args.width}"
+        )
+    if args.out.suffix.lower() != ".png":
+        raise CLIError(f"-o {args.out}: pidc render writes PNG; use a .png file name")
+    check_output(args.out, "-o")
 
     from components.simulate.contact_sheet import save_png
     from components.simulate.procedural import ProceduralSimulator
@@ -124,6 +133,7 @@ def _cmd_config_check(args: argparse.Namespace) -> int:
 
     from components.core.config import ConfigError, load_params
 
+    check_output(args.write, "--write")
     try:
         params = load_params(args.params, profile=args.profile)
     except ConfigError as e:
@@ -207,6 +217,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # e.g. `pidc characterize … | head`: the reader left; not an error of ours
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's recipe: no flush error at exit
         return 0
+    except MemoryError as e:  # e.g. --samples 500000000: numpy cannot allocate the draws
+        print(f"pidc {args.command}: error: {memory_error_line(args, e)}", file=sys.stderr)
+        return 2
+    except OSError as e:  # a write the early checks could not foresee (a full disk, a folder made meanwhile, …)
+        print(f"pidc {args.command}: error: {os_error_line(args, e)}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

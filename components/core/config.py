@@ -16,14 +16,27 @@ Used by every stage and the ``pidc`` CLI (``pidc config check``).
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictInt,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from components.core import weather
+from components.core.images import RENDER_SIDES
 
 __all__ = ["ConfigError", "Params", "load_params", "parse_params", "profile_names", "DEFAULT_PROFILE", "PROJECT_ROOT"]
 
@@ -43,37 +56,61 @@ class ConfigError(ValueError):
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # finite numbers only (``.inf``/``.nan`` are no setting's meaning); counts and switches strict (below)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
-PositiveInt = Annotated[int, Field(gt=0)]
-NonNegativeInt = Annotated[int, Field(ge=0)]
+def _no_bool(v: object) -> object:
+    if isinstance(v, bool):
+        raise ValueError(f"must be a number, got {v!r} (YAML reads yes/no/true/false as booleans)")
+    return v
+
+
+#: a real number: an int or float (or a number YAML left as a string, such as ``1e-3``), never a boolean
+Real = Annotated[float, BeforeValidator(_no_bool)]
+# counts are strict integers (YAML's ``no`` must not become 0, nor ``"6000"`` 6000), switches strict booleans
+
+
+PositiveInt = Annotated[StrictInt, Field(gt=0)]
+NonNegativeInt = Annotated[StrictInt, Field(ge=0)]
+
+
+#: the backbones of ``components.features.backbones`` (``available()``; tests/test_config.py keeps the two equal)
+BackboneName = Literal["cues", "tiny", "cnn", "resnet50", "dinov2", "clip"]
+
+
+def _each_once(v: tuple) -> tuple:
+    repeated = sorted({str(x) for x in v if v.count(x) > 1})
+    if repeated:
+        raise ValueError(f"each value at most once, got {', '.join(repeated)} more than once in {list(v)}")
+    return v
 
 
 class CarlaConfig(_Section):
     """Connection and scene settings of the CARLA backend (``simulator.backend: carla``)."""
 
     host: str
-    port: Annotated[int, Field(gt=0, lt=65536)]
-    timeout_s: Annotated[float, Field(gt=0)]
+    port: Annotated[StrictInt, Field(gt=0, lt=65536)]
+    timeout_s: Annotated[Real, Field(gt=0)]
     #: maps drawn from by the scene seed; empty = every map the server offers
     maps: tuple[str, ...]
-    fixed_delta_seconds: Annotated[float, Field(gt=0, le=0.1)]
+    fixed_delta_seconds: Annotated[Real, Field(gt=0, le=0.1)]
     #: ticks between setting the weather and capturing (auto-exposure settles)
     settle_ticks: PositiveInt
-    traffic_manager_port: Annotated[int, Field(gt=0, lt=65536)]
+    traffic_manager_port: Annotated[StrictInt, Field(gt=0, lt=65536)]
     max_vehicles: NonNegativeInt
     max_pedestrians: NonNegativeInt
     #: horizontal field of view of the RGB camera, degrees
-    fov: Annotated[float, Field(gt=0, lt=180)]
+    fov: Annotated[Real, Field(gt=0, lt=180)]
 
 
 class SimulatorConfig(_Section):
     """Which simulator renders the data, and at what resolution (pixels)."""
 
     backend: Literal["procedural", "carla"]
-    height: PositiveInt
-    width: PositiveInt
+    #: the images' size in pixels, within the renderer's range (``images.RENDER_SIDES``: 16..2048)
+    height: Annotated[StrictInt, Field(ge=RENDER_SIDES[0], le=RENDER_SIDES[1])]
+    width: Annotated[StrictInt, Field(ge=RENDER_SIDES[0], le=RENDER_SIDES[1])]
     #: null: the renderer's own ``height × width`` images; ``[low, high]``: each scene rendered ``low..high`` pixels
     #: high (drawn from its seed; the width in proportion) and area-resized to ``height × width``, as a camera's
     #: images are (components/simulate/resized.py); the procedural backend only
@@ -90,9 +127,9 @@ class SimulatorConfig(_Section):
                 f"render_sizes {list(self.render_sizes)} needs backend: procedural (a CARLA camera renders at "
                 "height × width); set render_sizes: null"
             )
-        if not self.height <= low <= high <= 2048:
+        if not self.height <= low <= high <= RENDER_SIDES[1]:
             raise ValueError(
-                f"render_sizes [{low}, {high}] must satisfy height ({self.height}) ≤ low ≤ high ≤ 2048: each render "
+                f"render_sizes [{low}, {high}] must satisfy height ({self.height}) ≤ low ≤ high ≤ {RENDER_SIDES[1]}: each render "
                 "is shrunk to height × width"
             )
         return self
@@ -103,14 +140,23 @@ class RunnerConfig(_Section):
 
     kind: Literal["threads", "processes", "dask"]
     workers: PositiveInt
-    #: address of an existing Dask scheduler (``tcp://host:8786``); null = a local cluster
+    #: address of an existing Dask scheduler (``tcp://host:8786``); null = a local cluster (kind: dask only)
     dask_address: str | None
+
+    @model_validator(mode="after")
+    def _dask_address(self) -> RunnerConfig:
+        if self.dask_address is not None and self.kind != "dask":
+            raise ValueError(
+                f"dask_address {self.dask_address!r} is set but kind is {self.kind!r}: it names a Dask scheduler, "
+                "so set kind: dask, or dask_address: null"
+            )
+        return self
 
 
 class DataConfig(_Section):
     """The simulated dataset: split sizes, sharding and scene reuse."""
 
-    root: str
+    root: Annotated[str, Field(min_length=1)]
     #: number of images per split; the train split must cover the largest training size
     splits: dict[Literal["train", "val", "test"], PositiveInt]
     shard_size: PositiveInt
@@ -132,18 +178,24 @@ class DataConfig(_Section):
 class ContactSheetConfig(_Section):
     """The generate stage's contact sheet: each row sweeps one parameter from low to high."""
 
-    steps: Annotated[int, Field(ge=2)]
+    steps: Annotated[StrictInt, Field(ge=2)]
     scenes: PositiveInt
-    path: str
+    path: Annotated[str, Field(min_length=1)]
 
 
 class BackbonesConfig(_Section):
     """The image backbones of the grid and where pretrained weights are found."""
 
-    names: tuple[str, ...]
+    #: the grid's backbones, each once (components/features/backbones: ``available()``)
+    names: tuple[BackboneName, ...] = Field(min_length=1)
     #: a local directory holding one sub-folder of Hugging Face weights per pretrained backbone
     pretrained_dir: str | None
     batch_size: PositiveInt
+
+    @field_validator("names")
+    @classmethod
+    def _each_once(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        return _each_once(v)
 
 
 class FlowParams(_Section):
@@ -151,14 +203,15 @@ class FlowParams(_Section):
 
     transforms: PositiveInt
     hidden_features: tuple[PositiveInt, ...]
-    bins: Annotated[int, Field(ge=2)]
-    #: 2 = coupling flow (fast sampling); null = fully autoregressive
-    passes: PositiveInt | None
+    bins: Annotated[StrictInt, Field(ge=2)]
+    #: 2 = coupling flow (fast sampling), up to 6 (one pass per parameter); null = fully autoregressive (1 would make
+    #: the parameters independent given the image)
+    passes: Annotated[StrictInt, Field(ge=2, le=len(weather.PREDICTED))] | None
     #: flows in an equal-weight ensemble for models of at least ``train.ensemble_min_size`` training images (fewer
     #: images: one flow); calibration and sharpness beyond the paper; 1 = a single flow everywhere
     ensemble: PositiveInt
     #: standardize the flow's inputs with a mean/std fitted on the training set
-    standardize: bool
+    standardize: StrictBool
     #: widths of the context network (an MLP, SiLU between its layers) from the backbone's features to the flows'
     #: context, shared by an ensemble's flows; the last width is the context size; [] = the features are the context
     context_layers: tuple[PositiveInt, ...]
@@ -172,7 +225,7 @@ class VariantConfig(_Section):
     backbone: str
     size: PositiveInt
     #: λ of balanced NPE for this model
-    balance: Annotated[float, Field(ge=0)]
+    balance: Annotated[Real, Field(ge=0)]
     #: flows in this model's equal-weight ensemble
     ensemble: PositiveInt
 
@@ -184,16 +237,16 @@ class TemperatureRegimeConfig(_Section):
     name: Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")]
     #: the predicted parameter that defines the regime, and the value below which an input lies in it
     parameter: str
-    below: float
+    below: Real
 
 
 class TrainConfig(_Section):
     """The grid of models (backbone × training size) and how each is trained."""
 
     #: training-set sizes: nested prefixes of the train split
-    sizes: tuple[PositiveInt, ...]
+    sizes: tuple[PositiveInt, ...] = Field(min_length=1)
     #: the MLflow experiment of the grid
-    experiment: str
+    experiment: Annotated[str, Field(min_length=1)]
     flow: FlowParams
     epochs: PositiveInt
     #: maximum epochs for a backbone trained jointly with the flow (costly on a CPU)
@@ -206,26 +259,26 @@ class TrainConfig(_Section):
     #: below this many training images, s = scale_to / size: s× epochs and patience, hidden widths / √s
     scale_to: PositiveInt
     batch_size: PositiveInt
-    lr: Annotated[float, Field(gt=0)]
-    weight_decay: Annotated[float, Field(ge=0)]
+    lr: Annotated[Real, Field(gt=0)]
+    weight_decay: Annotated[Real, Field(ge=0)]
     schedule: Literal["cosine", "plateau", "constant"]
     #: the schedule's floor (where cosine ends; the plateau schedule's minimum)
-    min_lr: Annotated[float, Field(ge=0)]
+    min_lr: Annotated[Real, Field(ge=0)]
     #: the plateau schedule: lr × plateau_factor after plateau_patience epochs without improvement
-    plateau_factor: Annotated[float, Field(gt=0, lt=1)]
+    plateau_factor: Annotated[Real, Field(gt=0, lt=1)]
     plateau_patience: PositiveInt
     #: early stopping: stop after this many epochs without improvement of the validation loss (× s below scale_to);
     #: null: none, every epoch of the schedule runs (the weights of the best validation epoch are kept either way)
     patience: PositiveInt | None
     #: the improvement of the validation loss that counts (nats)
-    min_delta: Annotated[float, Field(ge=0)]
-    clip_norm: Annotated[float, Field(gt=0)] | None
+    min_delta: Annotated[Real, Field(ge=0)]
+    clip_norm: Annotated[Real, Field(gt=0)] | None
     #: λ of balanced NPE (calibration beyond the paper; 0 = plain NPE)
-    balance: Annotated[float, Field(ge=0)]
+    balance: Annotated[Real, Field(ge=0)]
     #: σ of Gaussian noise added to the frozen features while training (units of their standard deviation) at
     #: ``scale_to`` images, × √(scale_to / size) for other sizes, none above ``input_noise_max_size`` images
     #: (components/posterior/settings.py); 0 = none
-    input_noise: Annotated[float, Field(ge=0)]
+    input_noise: Annotated[Real, Field(ge=0)]
     input_noise_max_size: PositiveInt
     #: no input noise for a model of fewer input features: noise regularizes many redundant features (cues 377, tiny
     #: 256) and erases the signal of a few informative ones (the SBI problems' 2–10)
@@ -233,13 +286,13 @@ class TrainConfig(_Section):
     #: train on each input or its mirror image's with probability ½ (a left-right mirror leaves the weather and the
     #: sun and wind azimuths unchanged in law, the scenes nearly; components/posterior/train.py); the backbones'
     #: features permute under it
-    mirror: bool
+    mirror: StrictBool
     #: models of at least this many training images are ensembles of ``train.flow.ensemble`` flows, the others one
     #: flow (components/posterior/settings.py)
     ensemble_min_size: PositiveInt
     #: after training, fit the flows' base scale τ (one per parameter) on the validation split by maximum
     #: likelihood (post-hoc calibration, components/posterior/temperature.py); false: τ = 1
-    temperature: bool
+    temperature: StrictBool
     #: with ``temperature``: one τ outside and one inside this regime, blended per input by a logistic gate on the
     #: flows' context fitted on the training split (components/posterior/regime.py); null: one τ for every input
     temperature_regime: TemperatureRegimeConfig | None
@@ -250,6 +303,11 @@ class TrainConfig(_Section):
     variants: dict[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")], VariantConfig]
     #: the task runner training the models in parallel (processes: ``cores // workers`` torch threads each)
     runner: RunnerConfig
+
+    @field_validator("sizes")
+    @classmethod
+    def _sizes_once(cls, v: tuple[int, ...]) -> tuple[int, ...]:
+        return _each_once(v)
 
     @model_validator(mode="after")
     def _min_lr(self) -> TrainConfig:
@@ -264,18 +322,18 @@ class EvaluateConfig(_Section):
     #: test images evaluated: ``all`` (the whole test split) or a count ≤ ``data.splits.test`` (the first ones)
     images: PositiveInt | Literal["all"]
     #: posterior samples per image (HPD credibility, coverage, π); the 99.73 % HDR of the plots needs ≥ 371
-    samples: Annotated[int, Field(ge=400)]
+    samples: Annotated[StrictInt, Field(ge=400)]
     #: images given a posterior predictive check, and re-renders per check (posterior and prior each)
     ppc_images: PositiveInt
-    ppc_renders: Annotated[int, Field(ge=2)]
+    ppc_renders: Annotated[StrictInt, Field(ge=2)]
     #: test images shown as histograms and corner plots per model
     example_images: NonNegativeInt
     #: equal-width bins of each parameter's prior range: the errors and coverage by true value (``profiles.json``)
-    profile_bins: Annotated[int, Field(ge=1, le=100)]
+    profile_bins: Annotated[StrictInt, Field(ge=1, le=100)]
     #: ``calibration_band``: this quantile of the calibration error of a perfectly calibrated model on the same
     #: images and samples, simulated ``band_replicates`` times (seeded); ``within_band``: the error is ≤ the band
-    band_level: Annotated[float, Field(gt=0, lt=1)]
-    band_replicates: Annotated[int, Field(ge=100)]
+    band_level: Annotated[Real, Field(gt=0, lt=1)]
+    band_replicates: Annotated[StrictInt, Field(ge=100)]
     #: the task runner evaluating models in parallel (processes: one onnxruntime thread each)
     runner: RunnerConfig
 
@@ -300,7 +358,7 @@ class ExportConfig(_Section):
     #: calibration error lies within the band of a perfectly calibrated model (``evaluate.band_level``); when none
     #: does, the lowest test NLL among those with a calibration error ≤ this ceiling (the choice is recorded);
     #: when none is below it either, the evaluation fails
-    champion_max_calibration_error: Annotated[float, Field(gt=0, le=1)]
+    champion_max_calibration_error: Annotated[Real, Field(gt=0, le=1)]
     #: models exported at a time (their registrations follow one by one, in the grid's order); in processes only:
     #: torch's ONNX exporter keeps global state, so two exports in one process would corrupt each other
     runner: RunnerConfig
@@ -316,12 +374,25 @@ class ExportConfig(_Section):
         return v
 
 
+def _model_name(v: str) -> str:
+    if v != v.strip():
+        raise ValueError(
+            f"must be champion, challenger, a models:/ URI or a model id, without surrounding spaces, got {v!r}"
+        )
+    return v
+
+
+#: the model a task characterizes with: ``champion``/``challenger``, a ``models:/`` URI, or a model id of ``registry/``
+ModelName = Annotated[str, Field(min_length=1), AfterValidator(_model_name)]
+
+
 class GaussianMode(_Section):
     """One component of Task II's Gaussian mixture over (fog_density, precipitation), physical units."""
 
-    weight: Annotated[float, Field(gt=0)]
-    mean: tuple[float, float]
-    std: tuple[Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]]
+    #: its share of the mixture; the modes' weights are relative (divided by their sum)
+    weight: Annotated[Real, Field(gt=0)]
+    mean: tuple[Real, Real]
+    std: tuple[Annotated[Real, Field(gt=0)], Annotated[Real, Field(gt=0)]]
 
 
 class DeconvolutionConfig(_Section):
@@ -332,7 +403,7 @@ class DeconvolutionConfig(_Section):
     #: EM steps tried (1 = the mixture of posteriors); the number used is chosen by held-out likelihood
     max_steps: PositiveInt
     #: folds of the cross-validation over the bag's images
-    folds: Annotated[int, Field(ge=2)]
+    folds: Annotated[StrictInt, Field(ge=2)]
 
 
 class WidthFloorConfig(_Section):
@@ -341,11 +412,11 @@ class WidthFloorConfig(_Section):
     each of ``scales``; for the varying parameters, the two mixtures' difference with its bootstrap interval."""
 
     #: posterior draws per bag image
-    draws: Annotated[int, Field(ge=2)]
+    draws: Annotated[StrictInt, Field(ge=2)]
     #: bootstrap replicates (resampled bag images) behind the 95 % interval of the mixture's ratio minus the calibrated
-    bootstrap: Annotated[int, Field(ge=40)]
+    bootstrap: Annotated[StrictInt, Field(ge=40)]
     #: the spread's scale factors s (1 = the posteriors' own widths, required: the report and its plot show it)
-    scales: tuple[Annotated[float, Field(gt=0)], ...] = Field(min_length=1)
+    scales: tuple[Annotated[Real, Field(gt=0)], ...] = Field(min_length=1)
 
     @field_validator("scales")
     @classmethod
@@ -360,25 +431,34 @@ class Task2Config(_Section):
 
     #: the model characterizing the bag: ``champion``/``challenger`` (the registered model's alias, e.g.
     #: ``models:/pidc@champion``; the evaluate stage sets it), a ``models:/`` URI, or a model id of ``registry/``
-    model: Annotated[str, Field(min_length=1)]
+    model: ModelName
     #: images in the bag (all equally weighted), rendered in fresh scenes
     images: PositiveInt
     images_per_scene: PositiveInt
     #: the fixed predicted parameters (every one but fog_density and precipitation), physical units
-    fixed: dict[str, float]
+    fixed: dict[str, Real]
     #: the sun azimuth of every image of the bag, degrees (the paper fixes every parameter but the two that vary)
-    sun_azimuth_angle: Annotated[float, Field(ge=0, lt=360)]
+    sun_azimuth_angle: Annotated[Real, Field(ge=0, lt=360)]
     #: the Gaussian mixture over (fog_density, precipitation), truncated to the prior box
-    modes: tuple[GaussianMode, ...]
+    modes: tuple[GaussianMode, ...] = Field(min_length=1)
     #: draws from the estimate and from the true distribution (metrics and plots)
-    samples: Annotated[int, Field(ge=100)]
+    samples: Annotated[StrictInt, Field(ge=100)]
     #: the estimate's highest-density region whose share of the true mass is reported
-    hdr_level: Annotated[float, Field(gt=0, lt=1)]
+    hdr_level: Annotated[Real, Field(gt=0, lt=1)]
     #: the estimate scored: ``mixture`` = Σᵢ wᵢ q(θ | xᵢ) (the paper's), ``deconvolved`` = the maximum-likelihood
     #: weather distribution of the bag (the mixture's figures are then reported beside it)
     estimate: Literal["mixture", "deconvolved"]
     deconvolution: DeconvolutionConfig
     width_floor: WidthFloorConfig
+
+    @model_validator(mode="after")
+    def _folds_fit(self) -> Task2Config:
+        if self.estimate == "deconvolved" and self.deconvolution.folds > self.images:
+            raise ValueError(
+                f"deconvolution.folds = {self.deconvolution.folds} exceeds images = {self.images}: "
+                "each fold of the cross-validation needs an image of the bag"
+            )
+        return self
 
     @field_validator("fixed")
     @classmethod
@@ -396,7 +476,7 @@ class BagConfig(_Section):
     """A Task III bag: the test images whose weather lies in a sub-box of the prior (uniform on it)."""
 
     #: the sub-box, per predicted parameter (omitted ones span the prior), physical units
-    box: dict[str, tuple[float, float]]
+    box: dict[str, tuple[Real, Real]]
     #: at most this many images (the first ones of the test split inside the sub-box)
     max_images: PositiveInt
 
@@ -405,32 +485,32 @@ class Task3Config(_Section):
     """Task III: targets mixing three source bags and an out-of-ODD bag b0 at noise level η (the paper's sweep)."""
 
     #: the model characterizing every bag: as ``task2.model``
-    model: Annotated[str, Field(min_length=1)]
+    model: ModelName
     #: b0 (out of the ODD; disjoint from the others), then the sources b1, b2, b3
     bags: dict[Annotated[str, Field(pattern=r"^b[0-9]+$")], BagConfig]
     #: the true mixture weights λ of the sources b1, b2, … (on the simplex)
-    weights: tuple[Annotated[float, Field(ge=0)], ...]
+    weights: tuple[Annotated[Real, Field(ge=0)], ...]
     #: noise levels η: the share of b0 in the target
-    etas: tuple[Annotated[float, Field(ge=0, le=1)], ...]
+    etas: tuple[Annotated[Real, Field(ge=0, le=1)], ...]
     repetitions: PositiveInt
     #: n_W, points drawn from the target's characterization where the densities are compared
     n_points: PositiveInt
     #: the ODD decision's false-alarm rate α, and the in-ODD (η = 0) targets calibrating its threshold
-    false_alarm_rate: Annotated[float, Field(gt=0, lt=1)]
+    false_alarm_rate: Annotated[Real, Field(gt=0, lt=1)]
     calibration_targets: PositiveInt
     #: in-ODD (η = 0) targets of new seeds (neither the calibration's nor the sweep's) on which the false-alarm rate
     #: is measured, with its Clopper–Pearson interval
     false_alarm_targets: PositiveInt
     #: beyond the paper: also run fresh targets (their in-ODD part from other test images of the sources' sub-boxes);
     #: the ODD decision is then calibrated and judged on them (see components.domains.sweep)
-    fresh_targets: bool
+    fresh_targets: StrictBool
     #: how a bag's weather is characterized: ``scott``, the kernel density of ``draws_per_image`` posterior draws per
     #: image with the sources' Scott bandwidth (components.domains.kernel); ``none``, the exact mixture of posteriors
     #: (the paper's: isolated peaks when the posteriors are sharp and the bags small)
     smoothing: Literal["scott", "none"]
-    draws_per_image: Annotated[int, Field(ge=2)]
+    draws_per_image: Annotated[StrictInt, Field(ge=2)]
     #: the kernel's bandwidth in units of Scott's rule (smoothing: scott)
-    bandwidth_scale: Annotated[float, Field(gt=0)]
+    bandwidth_scale: Annotated[Real, Field(gt=0)]
 
     @model_validator(mode="after")
     def _consistent(self) -> Task3Config:
@@ -443,6 +523,20 @@ class Task3Config(_Section):
             raise ValueError(f"task3.weights must sum to 1 (λ on the simplex), got {list(self.weights)}")
         if 0.0 not in self.etas:
             raise ValueError("etas must contain 0 (in-ODD targets: the reference of the ROC curves)")
+        labels = [f"{eta:g}" for eta in self.etas]  # the metrics' keys (components/domains/sweep.py)
+        if len(set(labels)) < len(labels):
+            repeated = sorted({x for x in labels if labels.count(x) > 1})
+            raise ValueError(
+                f"etas repeats {', '.join(repeated)} (as the metrics name them, {list(self.etas)}): the sweep of "
+                "one η is deterministic, a repeat only duplicates its targets"
+            )
+        alpha = self.false_alarm_rate
+        need = math.ceil((1.0 - alpha) / alpha - 1e-9)  # OddDetector.calibrate: ⌈(n+1)(1−α)⌉ ≤ n
+        if self.calibration_targets < need:
+            raise ValueError(
+                f"calibration_targets = {self.calibration_targets} is too few for false_alarm_rate = "
+                f"{alpha:g}: the threshold, the ⌈(n+1)(1−α)⌉-th smallest in-ODD gap, needs n ≥ {need}"
+            )
         if self.n_points < len(names) - 1:
             raise ValueError(f"n_points = {self.n_points} cannot determine {len(names) - 1} weights")
         boxes = {}
@@ -478,11 +572,11 @@ class MonitorConfig(_Section):
     #: Task I images per run (simulator: rendered; a folder: its first ones in ``labels.csv``, all if it holds fewer)
     images: PositiveInt
     #: posterior draws per image (credibility of the truth, coverage, the calibration band at the same count)
-    samples: Annotated[int, Field(ge=100)]
+    samples: Annotated[StrictInt, Field(ge=100)]
     #: the level of both alarms: the calibration band is this quantile of a perfectly calibrated model's calibration
     #: error on as many images and draws, and the false-alarm interval holds this probability of the ODD decision's
     #: false-alarm count; a model that is fine raises each alarm with probability ≤ 1 − level
-    alarm_level: Annotated[float, Field(gt=0.5, lt=1)]
+    alarm_level: Annotated[Real, Field(gt=0.5, lt=1)]
     #: Task III: in-ODD targets of new seeds (and, from the simulator, new images) on which the ODD decision's
     #: false-alarm rate is measured with the threshold of ``reports/task3/metrics.json``; 0: no ODD check
     false_alarm_targets: NonNegativeInt
@@ -503,7 +597,7 @@ class Params(_Section):
     #: the root of every random draw in the pipeline
     seed: NonNegativeInt
     simulator: SimulatorConfig
-    prior: dict[str, tuple[float, float]]
+    prior: dict[str, tuple[Real, Real]]
     data: DataConfig
     contact_sheet: ContactSheetConfig
     backbones: BackbonesConfig
@@ -518,6 +612,11 @@ class Params(_Section):
     @classmethod
     def _prior_box(cls, v: dict[str, tuple[float, float]]) -> dict[str, tuple[float, float]]:
         weather.Box.from_mapping(v)  # raises ValueError naming the parameter
+        missing = [name for name in weather.PREDICTED if name not in v]
+        if missing:  # Box.from_mapping would give them their physical range: the prior is never implicit
+            raise ValueError(
+                f"missing {', '.join(missing)}: the prior needs [low, high] for each of the six parameters"
+            )
         return v
 
     @model_validator(mode="after")
@@ -564,6 +663,14 @@ class Params(_Section):
                 raise ValueError(
                     f"task2.fixed.{name} = {value:g} lies outside the prior [{box.low[i]:g}, {box.high[i]:g}]"
                 )
+        varying = [box.names.index(name) for name in ("fog_density", "precipitation")]
+        for k, mode in enumerate(self.task2.modes):
+            for name, i, value in zip(("fog_density", "precipitation"), varying, mode.mean, strict=True):
+                if not box.low[i] <= value <= box.high[i]:
+                    raise ValueError(
+                        f"task2.modes.{k}.mean: {name} = {value:g} lies outside the prior [{box.low[i]:g}, "
+                        f"{box.high[i]:g}]: the bag's weather is the mixture truncated to the prior"
+                    )
         for bag, cfg in self.task3.bags.items():
             for name, (low, high) in cfg.box.items():
                 i = box.names.index(name)
@@ -601,13 +708,16 @@ class Params(_Section):
 def _format_error(path: Path, err: ValidationError) -> str:
     lines = [f"{path}: invalid params"]
     for e in err.errors():
-        key = ".".join(str(p) for p in e["loc"]) or "(top level)"
-        msg = e["msg"]
+        loc = list(e["loc"])
+        msg = e["msg"].removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
             msg = "unknown key"
+        elif e["type"] == "missing" and loc and isinstance(loc[-1], int):  # a fixed-length list that is too short
+            msg = f"too few items (item {loc.pop()} missing)"
         elif e["type"] == "missing":
             msg = "missing key"
-        lines.append(f"  {key}: {msg}")
+        key = ".".join(str(p) for p in loc)
+        lines.append(f"  {key}: {msg}" if key else f"  {msg}")  # a check across sections names its keys itself
     return "\n".join(lines)
 
 
@@ -623,13 +733,42 @@ def parse_params(data: object, *, source: str | Path = "<params>") -> Params:
         raise ConfigError(_format_error(Path(source), err)) from None
 
 
+class _DuplicateKey(yaml.YAMLError):
+    """A key written twice in one mapping."""
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, but a key written twice in one mapping is an error (PyYAML keeps the last silently;
+    DVC refuses such a params file)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: dict[object, yaml.Mark] = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if isinstance(key, list | dict):
+                continue  # unhashable: PyYAML's own error follows
+            if key in seen:
+                raise _DuplicateKey(
+                    f"line {key_node.start_mark.line + 1}: {key} appears twice in one mapping (first "
+                    f"at line {seen[key].line + 1}); PyYAML would keep the last silently"
+                )
+            seen[key] = key_node.start_mark
+        return super().construct_mapping(node, deep=deep)
+
+
 def _read_yaml(p: Path, what: str) -> object:
     try:
-        text = p.read_text()
+        text = p.read_text(encoding="utf-8")
     except OSError as e:
         raise ConfigError(f"{p}: cannot read {what} ({e.strerror})") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(
+            f"{p}: cannot read {what}: not UTF-8 text (byte {e.object[e.start]:#04x} at {e.start})"
+        ) from None
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader)
+    except _DuplicateKey as e:
+        raise ConfigError(f"{p}: {e}") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"{p}: not valid YAML: {e}") from None
 

@@ -25,6 +25,7 @@ import numpy as np
 __all__ = [
     "IMAGE_EXTENSIONS",
     "SMALL_SIDE",
+    "RENDER_SIDES",
     "ImageError",
     "ImageItem",
     "read_image",
@@ -42,6 +43,9 @@ IMAGE_EXTENSIONS: frozenset[str] = frozenset(
 _EXIF_ORIENTATION = 0x0112
 #: Images with a side below this many pixels get a note (features of such images are unreliable).
 SMALL_SIDE: int = 32
+#: The sides (height and width, pixels) the procedural renderer draws, smallest and largest: its own check, the
+#: params' ``simulator`` sizes and ``pidc render``'s options.
+RENDER_SIDES: tuple[int, int] = (16, 2048)
 
 _SIGNATURES: tuple[tuple[bytes, str], ...] = (
     (b"\x89PNG\r\n\x1a\n", "PNG"),
@@ -137,8 +141,11 @@ def read_image(path: str | Path) -> tuple[np.ndarray, str | None]:
     h, w = image.shape[:2]
     if h == 0 or w == 0:
         raise ImageError(f"{path}: zero-size image ({w}×{h} pixels)")
-    if min(h, w) < SMALL_SIDE:
+    if max(h, w) < SMALL_SIDE:
         notes.append(f"very small ({w}×{h} pixels)")
+    elif min(h, w) < SMALL_SIDE:
+        side = "high" if h < w else "wide"
+        notes.append(f"only {min(h, w)} pixels {side} ({w}×{h} pixels): the backbone stretches it to its square input")
     elif h != w:
         notes.append(f"not square ({w}×{h} pixels): the backbone resizes it to its square input")
     return image, ("; ".join(notes) or None)

@@ -12,7 +12,7 @@ flow (``trainable``) it holds the backbone's model input at its ``input_size`` (
 only when its receipt names the current dataset shard (sha256) and the current backbone
 fingerprint; otherwise it is recomputed, never mixed with new data.
 
-Used by the ``features``, ``train``, ``variant``, ``evaluate``, ``task2`` and ``task3`` stages and the ``pidc`` CLI.
+Used by the ``features``, ``train``, ``evaluate``, ``task2`` and ``task3`` stages and the ``pidc`` CLI.
 """
 
 from __future__ import annotations

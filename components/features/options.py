@@ -1,6 +1,6 @@
 """A backbone's build options from the params: where pretrained weights live, the seed of a trainable CNN.
 
-Used by the ``features``, ``train`` and ``variant`` stages, so that a backbone is built the same way wherever its
+Used by the ``features`` and ``train`` stages, so that a backbone is built the same way wherever its
 output is computed or learned.
 """
 

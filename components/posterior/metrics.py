@@ -1,4 +1,4 @@
-"""Scores of a trained posterior on a labelled split (the ``train``/``variant`` stages' test metrics)."""
+"""Scores of a trained posterior on a labelled split (the ``train`` stage's test metrics)."""
 
 from __future__ import annotations
 

@@ -4,7 +4,7 @@
 for direct library use (benchmarks, tests); the pipeline depends on none of them: every field is set here from
 ``params.yaml`` (a field added to either class without a setting here is an error, not a silent default).
 
-Used by the ``train`` and ``variant`` stages.
+Used by the ``train`` stage (the grid and its variants).
 """
 
 from __future__ import annotations

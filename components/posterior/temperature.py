@@ -18,7 +18,7 @@ context: :func:`fit_regime_gate` fits the gate on the training pairs (the regime
 :func:`calibrate` fits both τ by maximum likelihood on the held-out pairs, each pair weighted by its gate
 (BENCHMARKS.md, "A base scale for the night").
 
-Used by the ``train`` and ``variant`` stages.
+Used by the ``train`` stage (the grid and its variants).
 """
 
 from __future__ import annotations

@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from components import NUMPY_DISPATCH_OFF, numpy_kernels
+from components.core.images import RENDER_SIDES
 from components.core.weather import complete_weather
 
 from .calibration import CALIBRATION, Calibration, calibration_hash
@@ -86,8 +87,9 @@ class ProceduralSimulator:
         for name, v in (("height", height), ("width", width), ("cache_size", cache_size)):
             if isinstance(v, bool) or not isinstance(v, numbers.Integral):
                 raise TypeError(f"{name} must be an int, got {type(v).__name__}")
-        if not (16 <= height <= 2048 and 16 <= width <= 2048):
-            raise ValueError(f"image size must be within 16..2048 pixels, got {height}×{width}")
+        low, high = RENDER_SIDES
+        if not (low <= height <= high and low <= width <= high):
+            raise ValueError(f"image size must be within {low}..{high} pixels, got {height}×{width}")
         if cache_size < 1:
             raise ValueError(f"cache_size must be >= 1, got {cache_size}")
         _check_numpy_kernels()

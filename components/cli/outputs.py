@@ -1,0 +1,118 @@
+"""Output files of the ``pidc`` commands, checked before any work: writable, not a folder, not one of the inputs; and
+the one-line messages of the errors that reach :func:`components.cli.main.main` (a failed write, memory).
+
+Used by the ``pidc`` CLI only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+
+from components.cli.errors import CLIError
+
+__all__ = [
+    "check_output",
+    "check_outputs",
+    "check_not_input",
+    "os_error_line",
+    "memory_error_line",
+    "OUTPUT_OPTIONS",
+    "SIZE_OPTIONS",
+]
+
+#: The commands' output options (argparse destinations → how the user wrote them), to name them in errors.
+OUTPUT_OPTIONS: dict[str, str] = {
+    "json": "--json",
+    "corner": "--corner",
+    "plot": "--plot",
+    "samples_out": "--samples-out",
+    "out": "-o",
+    "write": "--write",
+}
+#: The options that size the arrays a command allocates (named when memory runs out).
+SIZE_OPTIONS: dict[str, str] = {"samples": "--samples", "points": "--points", "draws_per_image": "--draws-per-image"}
+
+#: The temporary names of :func:`components.core.files.atomic_path`: ``.<target name>.<8 hex>.tmp`` beside the target.
+_ATOMIC_TEMP = re.compile(r"^\.(?P<name>.+)\.[0-9a-f]{8}\.tmp$")
+
+
+def _existing_folder(path: Path) -> Path:
+    """The nearest ancestor of ``path`` that exists (the folder a write would create the missing ones in)."""
+    p = path.parent
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def check_output(path: Path | None, option: str) -> None:
+    """A one-line :class:`CLIError` naming ``option`` and ``path`` unless a file can be written at ``path``: not a
+    folder, below a folder (missing folders are made by the write), where a file can be created (a probe file named as
+    :func:`components.core.files.atomic_path`'s temporary files, removed at once). Nothing when ``path`` is None."""
+    check_outputs([(option, path)])
+
+
+def check_outputs(outputs: Iterable[tuple[str, Path | None]]) -> None:
+    """:func:`check_output` of each ``(option, path)`` pair, probing each folder once (e.g. one corner plot per
+    image, all in one folder)."""
+    probed: set[Path] = set()
+    for option, path in outputs:
+        if path is None:
+            continue
+        if path.is_dir():
+            raise CLIError(f"{option} {path}: is a folder; give a file name")
+        folder = _existing_folder(path)
+        if not folder.is_dir():
+            raise CLIError(f"{option} {path}: {folder} is a file, not a folder")
+        if folder in probed:
+            continue
+        try:
+            fd, probe = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+        except OSError as e:
+            raise CLIError(f"{option} {path}: cannot write there ({e.strerror or e})") from None
+        os.close(fd)
+        os.unlink(probe)
+        probed.add(folder)
+
+
+def check_not_input(outputs: Iterable[tuple[str, Path | None]], inputs: Iterable[Path]) -> None:
+    """A :class:`CLIError` when an output path (``(option, path)`` pairs; None skipped) is one of the ``inputs`` (after
+    resolving links and ``..``): writing it would replace the user's image."""
+    given = {p.resolve() for p in inputs}
+    for option, path in outputs:
+        if path is not None and path.resolve() in given:
+            raise CLIError(f"{option} {path} is one of the input images; choose another file name")
+
+
+def _user_path(name: str | os.PathLike[str]) -> Path:
+    """The file the user named behind ``name``: the target of an :func:`atomic_path` temporary name, else ``name``."""
+    path = Path(name)
+    m = _ATOMIC_TEMP.match(path.name)
+    return path.with_name(m["name"]) if m else path
+
+
+def os_error_line(args: argparse.Namespace, error: OSError) -> str:
+    """One line for an ``OSError`` that reached ``main``: the user's path (not a temporary name), the option that named
+    it when one did, and the reason."""
+    reason = error.strerror or str(error) or type(error).__name__
+    name = error.filename2 or error.filename  # os.replace(temporary, target) names the target second
+    if name is None:
+        return reason
+    path = _user_path(os.fsdecode(name) if isinstance(name, bytes) else name)
+    for dest, option in OUTPUT_OPTIONS.items():
+        value = getattr(args, dest, None)
+        if value is not None and Path(value).absolute() == path.absolute():
+            return f"{option} {value}: cannot write there ({reason})"
+    return f"{path}: {reason}"
+
+
+def memory_error_line(args: argparse.Namespace, error: MemoryError) -> str:
+    """One line for a ``MemoryError``: how much numpy asked for (when it says) and the size options given."""
+    m = re.search(r"allocate (\S+ \S+)", str(error))
+    need = f" (could not allocate {m[1]})" if m else ""
+    sizes = [f"{option} {getattr(args, dest)}" for dest, option in SIZE_OPTIONS.items() if hasattr(args, dest)]
+    return f"out of memory{need}" + (f"; use smaller sizes: {', '.join(sizes)}" if sizes else "")

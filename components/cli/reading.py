@@ -1,0 +1,406 @@
+"""What the model commands share: the model of ``--model``/``--registry`` (the registry, an exported folder, or the
+MLflow Model Registry by URI), the images of the command line read in batches into the model's inputs (a ``note:`` or
+``skipped`` line on stderr for each image converted or refused), and the checks of the common options.
+
+Used by the ``pidc`` CLI only (:mod:`~components.cli.characterize`, :mod:`~components.cli.domain`,
+:mod:`~components.cli.relate`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+import warnings
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from components.cli.errors import CLIError
+from components.core.files import atomic_write_bytes
+
+__all__ = [
+    "READ_BATCH",
+    "MIN_SAMPLES",
+    "Read",
+    "load_model",
+    "list_paths",
+    "read_batches",
+    "read_all",
+    "check_samples",
+    "check_seed",
+    "check_folder",
+    "check_figure_path",
+    "check_json_path",
+    "write_json",
+    "save_corner",
+    "count",
+    "say",
+    "progress",
+]
+
+#: Images read and turned into posterior inputs per batch (bounds memory for large folders).
+READ_BATCH = 64
+#: The fewest posterior draws ``--samples`` takes. The 68.27 % HDI's ends are order statistics with about 16 % of the
+#: draws beyond each: at 100 draws that is ~16 draws a side, and the Monte Carlo error of a 16 % quantile,
+#: √(0.16·0.84/m), is 3.7 percentage points of probability; at 10 draws 12 points, and at 1 the "interval" is one draw
+#: (width 0, a posterior that looks certain). The pipeline draws 500 (``evaluate.samples``), ``pidc`` 1000 by default.
+MIN_SAMPLES = 100
+
+
+def _check_models_uri(uri: str) -> None:
+    """A :class:`CLIError` for a malformed MLflow model URI, before MLflow runs: the forms MLflow accepts are
+    ``models:/NAME/VERSION``, ``models:/NAME/STAGE`` (or ``latest``), ``models:/NAME@ALIAS`` and ``models:/MODEL_ID``."""
+    path = uri[len("models:/") :]
+    parts = path.split("/")
+    name = parts[0].rsplit("@", 1)
+    if (
+        not path
+        or len(parts) > 2
+        or not parts[0].strip()
+        or (len(parts) == 2 and not parts[1].strip())
+        or (len(name) == 2 and (not name[0].strip() or not name[1].strip()))
+    ):
+        raise CLIError(
+            f"--model {uri}: malformed models:/ URI; expected models:/NAME/VERSION, models:/NAME/STAGE, "
+            "models:/NAME@ALIAS or models:/MODEL_ID (e.g. models:/pidc@champion)"
+        )
+
+
+def _download(uri: str, registry: Path, dest: Path) -> Path:
+    """The exported folder of an MLflow registered model ``uri`` (e.g. ``models:/pidc@champion``), downloaded into the
+    folder ``dest`` with MLflow's own command line (``mlflow artifacts download``), so that components import no
+    MLflow. The tracking store is ``MLFLOW_TRACKING_URI`` or the project's ``mlflow.db`` beside ``registry``."""
+    import os
+    import subprocess
+
+    store = os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{registry.resolve().parent / 'mlflow.db'}"
+    cmd = [sys.executable, "-m", "mlflow", "artifacts", "download", "--artifact-uri", uri, "--dst-path", str(dest)]
+    try:
+        r = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "MLFLOW_TRACKING_URI": store})
+    except OSError as e:
+        raise CLIError(f"{uri}: could not run `mlflow artifacts download` ({e})") from None
+    if r.returncode != 0:
+        lines = [line for line in r.stderr.strip().splitlines() if line.strip()]
+        last = lines[-1] if lines else "no message"
+        if "Not a proper models:/ URI" in last:
+            raise CLIError(f"--model {uri}: malformed models:/ URI ({last})")
+        raise CLIError(f"{uri}: not found in the MLflow store {store}: {last}")
+    folder = dest / "extra_files"
+    if not (folder / "card.json").is_file():
+        raise CLIError(f"{uri}: not a pidc model (no extra_files/card.json among its files)")
+    return folder
+
+
+def _check_registry(model: str, registry: Path) -> None:
+    """A :class:`CLIError` when ``--model`` needs the ``--registry`` folder (``champion`` or a model id: not an
+    exported folder) and it does not exist, naming the working directory it was looked for in."""
+    if Path(model).is_dir():
+        return
+    if not registry.exists() and ("/" in model or "\\" in model):  # meant as an exported folder
+        raise CLIError(f"--model {model}: no such folder (in {Path.cwd()})")
+    if not registry.exists():
+        raise CLIError(
+            f"--registry {registry}: no such folder (in {Path.cwd()}); run pidc from the project folder or pass "
+            "--registry PATH"
+        )
+    if not registry.is_dir():
+        raise CLIError(f"--registry {registry}: not a folder")
+
+
+def load_model(args: argparse.Namespace) -> Any:
+    """The model of ``--model``/``--registry`` (:class:`components.export.lookup.RegisteredPosterior`): a registry
+    model (``champion``, a model id, a folder) or an MLflow registered model URI (``models:/pidc@champion``), whose
+    download is removed once the model is loaded (its ONNX sessions are in memory by then)."""
+    import tempfile
+
+    from components.export.lookup import load_registered
+
+    model = str(args.model)
+    if not model.strip():
+        raise CLIError("--model is empty; give champion, a model id, an exported folder or a models:/ URI")
+    try:
+        if model.startswith("models:/"):
+            _check_models_uri(model)
+            with tempfile.TemporaryDirectory(prefix="pidc-model-") as dest:
+                return load_registered(_download(model, Path(args.registry), Path(dest)))
+        _check_registry(model, Path(args.registry))
+        return load_registered(model, args.registry)
+    except (FileNotFoundError, ValueError) as e:
+        raise CLIError(str(e)) from None
+
+
+def list_paths(paths: Sequence[str | Path]) -> list[Path]:
+    from components.core.images import ImageError, list_images
+
+    try:
+        return list_images(paths)
+    except ImageError as e:
+        raise CLIError(str(e)) from None
+
+
+def progress(total: int, desc: str) -> Any:
+    """A tqdm bar on stderr over ``total`` images (shown on a terminal and for more than one image)."""
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="image", file=sys.stderr, disable=True if total < 2 else None)
+
+
+def say(bar: Any, text: str, err: bool = False) -> None:
+    """Print ``text`` without breaking the progress bar."""
+    bar.write(text, file=sys.stderr if err else sys.stdout)
+
+
+@dataclass(frozen=True)
+class Read:
+    """Posterior inputs of readable images: ``paths[i]``, ``notes[i]`` and ``x[i]`` (the model's input)."""
+
+    paths: list[Path]
+    notes: list[str | None]
+    x: np.ndarray
+
+
+def _resize_caveat(model: Any, sizes: set[tuple[int, int]], converted: bool) -> str | None:
+    """What a posterior of a resized image is worth, for images of ``sizes`` (H, W): a note when a size is not one the
+    model learned from (the card's ``training_renders``), or, for a card that does not name them (exported before pidc
+    recorded it), when the backbone ``converted`` the images to its input; for a model of resized renders
+    (``simulator.render_sizes``), also when images come at its input size, which it takes as frames already shrunk;
+    None otherwise."""
+    renders = model.training_renders
+    other = sorted(s for s in sizes if not model.learned_size(s)) if renders else (sorted(sizes) if converted else [])
+    shown = ", ".join(f"{w}×{h}" for h, w in other[:3]) + (" …" if len(other) > 3 else "")
+    if renders is not None and renders[2] is not None:  # a model of resized renders
+        notes = [f"images of {shown} are outside them"] if other else []
+        if renders[:2] in sizes:
+            notes.append(
+                f"images of {renders[1]}×{renders[0]} are taken as frames already shrunk to it, not as the renderer's "
+                "own renders of that size"
+            )
+        if not notes:
+            return None
+        return (
+            f"{model.name} learned from {model.learned_from}; {'; '.join(notes)}: the calibration measured in the "
+            'pipeline covers only what it learned (BENCHMARKS.md, "Camera-like renders in the pipeline")'
+        )
+    if not other:
+        return None
+    learned = model.learned_from or "renders of a size its card does not name (re-export it)"
+    return (
+        f"{model.name} learned from {learned}; images of {shown} are area-resized, and the calibration measured in "
+        "the pipeline does not cover them: the simulator's own renders made larger and resized gave overconfident "
+        'posteriors (BENCHMARKS.md, "Images of another resolution")'
+    )
+
+
+#: The backbone's one-time size note names sizes as H×W; the CLI's notes name them W×H, as image viewers and
+#: :func:`components.core.images.read_image`'s notes do.
+_CONVERTING = re.compile(r"converting (\d+)×(\d+) images to its input size (\d+)×(\d+)")
+#: An image whose width:height differs this many times from the backbone's input's is said to be squashed: beyond the
+#: 16:9 (1.8) and 2:1 of camera frames and panoramas of a few views, a resize to the input distorts what the
+#: features see (a 2000×10 strip becomes 128 rows of 10 stretched ones).
+SQUASH_RATIO = 3.0
+
+
+def _width_first(message: str) -> str:
+    """The backbone's "converting H×W images to its input size H×W" note with its sizes as width×height."""
+    return _CONVERTING.sub(
+        lambda m: f"converting {m[2]}×{m[1]} images (width×height) to its input size {m[4]}×{m[3]}", message
+    )
+
+
+def _size_refusal(model: Any, size: tuple[int, int], error: ValueError) -> str:
+    """Why the model's backbone refused images of ``size`` (H, W): its minimum when its error names one."""
+    h, w = size
+    least = re.search(r"at least (\d+)×(\d+)", str(error))
+    if least:
+        return f"{w}×{h} pixels; model {model.name} needs images of at least {least[2]}×{least[1]}"
+    return f"{w}×{h} pixels; model {model.name} cannot take it ({error})"
+
+
+def _model_inputs(model: Any, images: list[np.ndarray]) -> tuple[np.ndarray | None, dict[int, str]]:
+    """The model's inputs of ``images`` (one batch per size), leaving out the sizes its backbone refuses (e.g. images
+    below its minimum size): → (the inputs of the others, in order; None when none is left, {index: reason})."""
+    from components.core.images import group_by_size
+
+    rows: dict[int, np.ndarray] = {}
+    refused: dict[int, str] = {}
+    for idx, batch in group_by_size(images):
+        try:
+            y = np.asarray(model.inputs(batch))
+        except ValueError as e:  # the backbone's check of the batch: its minimum size (none is exposed otherwise)
+            refused.update(dict.fromkeys(idx, _size_refusal(model, batch.shape[1:3], e)))
+            continue
+        rows.update(zip(idx, y, strict=True))
+    if not rows:
+        return None, refused
+    return np.stack([rows[i] for i in sorted(rows)]), refused
+
+
+def _inputs(
+    model: Any, images: list[np.ndarray], bar: Any, command: str, said: set[str]
+) -> tuple[np.ndarray | None, dict[int, str]]:
+    """uint8 images of any sizes → the model's inputs ``x (n, …)`` of those its backbone takes, in order, and the
+    reasons of those it refuses, by index (:func:`_model_inputs`).
+
+    The backbone's one-time "converting images" warning becomes a ``note:`` line on stderr (sizes as width×height),
+    and so does, once per command (``said``), the caveat of images not of the model's training size
+    (:func:`_resize_caveat`).
+    """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", UserWarning)
+        out, refused = _model_inputs(model, images)
+    for message in dict.fromkeys(str(w.message) for w in caught):
+        say(bar, f"pidc {command}: note: {_width_first(message)}", err=True)
+    sizes = {im.shape[:2] for i, im in enumerate(images) if i not in refused}
+    if sizes and "resized" not in said and (caveat := _resize_caveat(model, sizes, bool(caught))):
+        said.add("resized")
+        say(bar, f"pidc {command}: note: {caveat}", err=True)
+    return out, refused
+
+
+def _squash_note(model: Any, image: np.ndarray) -> str | None:
+    """A note when the backbone's resize changes the image's aspect ratio :data:`SQUASH_RATIO` times or more."""
+    size = getattr(model.backbone, "input_size", None)
+    if not size:
+        return None
+    h, w = image.shape[:2]
+    ratio = (w / h) / (size[1] / size[0])
+    factor = max(ratio, 1.0 / ratio)
+    if factor < SQUASH_RATIO:
+        return None
+    return (
+        f"squashed: the resize to the backbone's {size[1]}×{size[0]} input changes its aspect ratio {factor:.0f}-fold"
+    )
+
+
+def _read_one(path: Path, bar: Any, command: str) -> tuple[np.ndarray, str | None]:
+    """:func:`components.core.images.read_image` of ``path``, refusing what is not a regular file (a FIFO would block
+    the read forever); the reader's library warnings (e.g. Pillow's DecompressionBombWarning) become ``note:`` lines.
+    Raises :class:`components.core.images.ImageError`."""
+    import stat
+
+    from components.core.images import ImageError, read_image
+
+    if path.exists() and not path.is_file() and not path.is_dir():
+        kind = "a named pipe (FIFO)" if stat.S_ISFIFO(path.stat().st_mode) else "a device or socket"
+        raise ImageError(f"{path}: not a regular file ({kind})")
+    with warnings.catch_warnings(record=True) as caught:  # each file's own (deprecations stay filtered as usual)
+        warnings.simplefilter("always", UserWarning)
+        warnings.simplefilter("always", RuntimeWarning)
+        out = read_image(path)
+    for message in dict.fromkeys(str(w.message) for w in caught):
+        say(bar, f"pidc {command}: note: {path}: {message}", err=True)
+    return out
+
+
+def read_batches(
+    model: Any, paths: list[Path], command: str, desc: str, said: set[str] | None = None
+) -> Iterator[tuple[Read, Any]]:
+    """Read ``paths`` in batches of :data:`READ_BATCH`: yields the readable ones' inputs (and the progress bar).
+
+    Bad files (unreadable, not a regular file, or of a size the model's backbone refuses) are reported on stderr
+    (``pidc <command>: skipped <path>: <reason>``) and left out. Notes said once per command are recorded in ``said``
+    (shared by the calls of one command; a new set when None).
+    """
+    from components.core.images import ImageError
+
+    said = set() if said is None else said
+
+    with progress(len(paths), desc) as bar:
+        for start in range(0, len(paths), READ_BATCH):
+            good: list[Path] = []
+            notes: list[str | None] = []
+            images: list[np.ndarray] = []
+            for path in paths[start : start + READ_BATCH]:
+                try:
+                    image, note = _read_one(path, bar, command)
+                except ImageError as e:
+                    say(bar, f"pidc {command}: skipped {e}", err=True)
+                else:
+                    squash = _squash_note(model, image)
+                    good.append(path)
+                    notes.append("; ".join(n for n in (note, squash) if n) or None)
+                    images.append(image)
+                bar.update(1)
+            if not good:
+                continue
+            x, refused = _inputs(model, images, bar, command, said)
+            for i, reason in refused.items():
+                say(bar, f"pidc {command}: skipped {good[i]}: {reason}", err=True)
+            if x is not None:
+                keep = [i for i in range(len(good)) if i not in refused]
+                yield Read([good[i] for i in keep], [notes[i] for i in keep], x), bar
+
+
+def read_all(
+    model: Any, paths: list[Path], command: str, desc: str, folder: Path, said: set[str] | None = None
+) -> Read:
+    """All readable images' inputs at once (the bag of a domain); CLIError naming ``folder`` when none is readable."""
+    parts = [read for read, _ in read_batches(model, paths, command, desc, said)]
+    if not parts:
+        raise CLIError(f"{folder}: none of its {count(len(paths), 'image')} could be read")
+    return Read(
+        [p for r in parts for p in r.paths], [n for r in parts for n in r.notes], np.concatenate([r.x for r in parts])
+    )
+
+
+def count(n: int, word: str) -> str:
+    """``n`` and ``word``, plural unless n is 1: ``1 image``, ``3 images``."""
+    return f"{n} {word}{'' if n == 1 else 's'}"
+
+
+def check_figure_path(path: Path | None, option: str = "--corner") -> None:
+    """A figure file name whose type matplotlib writes (PNG, PDF, SVG, …), else a one-line error naming ``option``."""
+    if path is None:
+        return
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fmt = path.suffix.lstrip(".").lower()
+    if fmt not in FigureCanvasAgg.get_supported_filetypes():
+        raise CLIError(f"{option} {path}: unknown image type {path.suffix!r}; use e.g. a .png file")
+
+
+def save_corner(draws: np.ndarray, box: Any, title: str, path: Path) -> None:
+    from components.plots import corner_plot, save_figure
+
+    save_figure(corner_plot(draws, box=box, title=title), path)
+
+
+def check_samples(value: int) -> int:
+    """``--samples``, at least :data:`MIN_SAMPLES`."""
+    if value < MIN_SAMPLES:
+        raise CLIError(
+            f"--samples must be at least {MIN_SAMPLES} for a 68.27 % HDI that rests on more than a handful of draws, "
+            f"got {value}"
+        )
+    return value
+
+
+def check_json_path(path: Path | None) -> None:
+    if path is not None and path.suffix.lower() != ".json":
+        raise CLIError(f"--json {path}: expected a .json file name")
+
+
+def write_json(path: Path, report: dict) -> None:
+    """``report`` as indented JSON at ``path`` (atomically; its folder made), and a line on stderr saying so."""
+    atomic_write_bytes(path, (json.dumps(report, indent=1) + "\n").encode())
+    print(f"wrote {path}", file=sys.stderr)
+
+
+def check_seed(value: int) -> int:
+    if value < 0:
+        raise CLIError(f"--seed must be a non-negative integer, got {value}")
+    return value
+
+
+def check_folder(path: Path, command: str) -> Path:
+    """``path`` when it is a folder, else a :class:`CLIError` saying whether it is missing or not a folder."""
+    if not path.exists():
+        raise CLIError(f"{path}: no such folder")
+    if not path.is_dir():
+        raise CLIError(f"{path}: not a folder (pidc {command} reads the images of a folder)")
+    return path

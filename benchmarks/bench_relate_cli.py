@@ -47,7 +47,9 @@ SOURCES = ("b1", "b2", "b3")
 
 
 def clopper_pearson(k: int, n: int) -> tuple[float, float]:
-    """The 95 % Clopper–Pearson interval of a rate of ``k`` in ``n`` (scipy)."""
+    """The 95 % Clopper–Pearson interval of a rate of ``k`` in ``n`` (scipy); [0, 1] when n = 0 (nothing known)."""
+    if n == 0:
+        return 0.0, 1.0
     ci = binomtest(k, n).proportion_ci(0.95, method="exact")
     return round(float(ci.low), 3), round(float(ci.high), 3)
 
@@ -59,16 +61,23 @@ def _write(folder: Path, images: np.ndarray, idx: np.ndarray) -> Path:
     return folder
 
 
-def _relate(target: Path, sources: list[Path], smoothing: str, registry: Path) -> tuple[np.ndarray, bool, set[str]]:
+def _relate(
+    target: Path, sources: list[Path], smoothing: str, registry: Path
+) -> tuple[np.ndarray, bool, set[str]] | None:
     """λ̂, the verdict and the parameters whose W₁ exceeds their in-ODD level (whatever the verdict) of one
-    ``pidc relate`` run (its ``--json`` report)."""
+    ``pidc relate`` run (its ``--json`` report); None when the command refuses a verdict (its calibrated threshold
+    saturated at 1: the folders' densities do not overlap)."""
     report_path = target.with_suffix(f".{smoothing}.json")
     args = [str(target), *map(str, sources), "--registry", str(registry), "--smoothing", smoothing]
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         code = pidc(["relate", *args, "--calibration-targets", "100", "--json", str(report_path)])
+    if code != 0 and "no verdict is possible" in err.getvalue():
+        return None
     if code != 0:
-        raise RuntimeError(f"pidc relate {' '.join(args)} failed with exit code {code}:\n{out.getvalue()}")
+        raise RuntimeError(
+            f"pidc relate {' '.join(args)} failed with exit code {code}:\n{out.getvalue()}{err.getvalue()}"
+        )
     report = json.loads(report_path.read_text())
     weights = {s["name"]: s["weight"] for s in report["sources"]}
     exceeded = {name for name, p in report["parameters"].items() if p["exceeds_in_odd_level"]}
@@ -122,11 +131,15 @@ def main(argv: list[str] | None = None) -> None:
         names = params.box.names
         total = args.targets * args.source_draws
         for smoothing in args.smoothings:
-            d_e, flagged = [], {"in": 0, "out": 0}
+            d_e, flagged, refused = [], {"in": 0, "out": 0}, {"in": 0, "out": 0}
             marks = {kind: dict.fromkeys(names, 0) for kind in ("in", "out")}
             any_mark = {"in": 0, "out": 0}
             for kind, folder, sources in targets:
-                weights, is_outside, marked = _relate(folder, sources, smoothing, ROOT / "registry")
+                result = _relate(folder, sources, smoothing, ROOT / "registry")
+                if result is None:  # no verdict: counted apart, neither flagged nor passed
+                    refused[kind] += 1
+                    continue
+                weights, is_outside, marked = result
                 flagged[kind] += is_outside
                 any_mark[kind] += bool(marked)
                 for name in marked:
@@ -134,15 +147,20 @@ def main(argv: list[str] | None = None) -> None:
                 if kind == "in":
                     d_e.append(float(np.linalg.norm(weights - lam)))
             rows[smoothing] = {
-                "d_e_median_in_odd": round(float(np.median(d_e)), 3),
+                "refused_in_odd": refused["in"],
+                "refused_out_of_odd": refused["out"],
+                "d_e_median_in_odd": round(float(np.median(d_e)), 3) if d_e else None,
                 "flagged_in_odd": flagged["in"],
                 "flagged_out_of_odd": flagged["out"],
-                "false_alarm_rate_ci": clopper_pearson(flagged["in"], total),
-                "detection_rate_ci": clopper_pearson(flagged["out"], total),
+                # rates among the targets given a verdict
+                "false_alarm_rate_ci": clopper_pearson(flagged["in"], total - refused["in"]),
+                "detection_rate_ci": clopper_pearson(flagged["out"], total - refused["out"]),
                 # the per-parameter table: how many targets had each parameter's W₁ beyond its in-ODD level
                 "exceeded_in_odd": marks["in"],
                 "exceeded_out_of_odd": marks["out"],
-                "exceeded_in_odd_rate_ci": clopper_pearson(sum(marks["in"].values()), total * len(names)),
+                "exceeded_in_odd_rate_ci": clopper_pearson(
+                    sum(marks["in"].values()), (total - refused["in"]) * len(names)
+                ),
                 "any_exceeded_in_odd": any_mark["in"],
                 "any_exceeded_out_of_odd": any_mark["out"],
             }
@@ -152,10 +170,13 @@ def main(argv: list[str] | None = None) -> None:
     )
     for smoothing, row in rows.items():
         fa, det = row["false_alarm_rate_ci"], row["detection_rate_ci"]
+        given = {kind: total - row[f"refused_{kind}"] for kind in ("in_odd", "out_of_odd")}
+        d_e = "–" if row["d_e_median_in_odd"] is None else f"{row['d_e_median_in_odd']:.3f}"
         print(
-            f"  --smoothing {smoothing:5s}: median d_E {row['d_e_median_in_odd']:.3f}; flagged: in-ODD "
-            f"{row['flagged_in_odd']}/{total} (95 % CI {fa[0]:.3f}–{fa[1]:.3f}), out-of-ODD "
-            f"{row['flagged_out_of_odd']}/{total} (95 % CI {det[0]:.3f}–{det[1]:.3f})"
+            f"  --smoothing {smoothing:5s}: no verdict (threshold saturated): in-ODD {row['refused_in_odd']}/{total}, "
+            f"out-of-ODD {row['refused_out_of_odd']}/{total}; of the others: median d_E {d_e}; flagged: in-ODD "
+            f"{row['flagged_in_odd']}/{given['in_odd']} (95 % CI {fa[0]:.3f}–{fa[1]:.3f}), out-of-ODD "
+            f"{row['flagged_out_of_odd']}/{given['out_of_odd']} (95 % CI {det[0]:.3f}–{det[1]:.3f})"
         )
         for kind in ("in_odd", "out_of_odd"):
             counts = ", ".join(f"{n} {c}" for n, c in row[f"exceeded_{kind}"].items())

@@ -27,6 +27,7 @@ from tqdm.auto import tqdm
 
 from components import plots
 from components.core.files import atomic_write_bytes
+from components.domains.relative import OddDetector
 from components.domains.sweep import Experiment, NoiseSweep, experiments_by_eta
 from components.domains.task3 import DETECTED, build_sweep, eta_rows, eta_series, roc_rows, task3_metrics
 from components.evaluate.diagnostics import roc_curve
@@ -43,10 +44,11 @@ def run_level(sweep: NoiseSweep, eta: float, repetitions: int, seed: int, fresh:
 
 
 def _plots(
-    plot_dir: Path, kind: str, experiments: list[Experiment], threshold: float | None, model: str, per_eta: dict
+    plot_dir: Path, kind: str, experiments: list[Experiment], detector: OddDetector | None, model: str, per_eta: dict
 ) -> list[Path]:
-    """Box plots of d_E, δ and the relative gap (with the ODD threshold when calibrated on this kind) and the ROC
-    curves, their AUCs' intervals from ``per_eta`` (``metrics["eta"]``), for one target kind."""
+    """Box plots of d_E, δ and the relative gap (with the ODD threshold when ``detector`` was calibrated on this kind)
+    and the ROC curves, their AUCs' intervals from ``per_eta`` (``metrics["eta"]``) and, with ``detector``, the
+    point where its threshold puts each curve, for one target kind."""
     which = _TITLES[kind]
     d_e = experiments_by_eta(experiments, "d_e")
     files = [
@@ -66,14 +68,17 @@ def _plots(
         rel,
         baseline=experiments_by_eta(experiments, "baseline_relative_gap"),
         ylabel="relative gap δ / mean b²",
-        title=f"Task III ({model}, {which}): relative gap"
-        + (" and the ODD threshold" if threshold is not None else ""),
+        title=f"Task III ({model}, {which}): relative gap" + (" and the ODD threshold" if detector is not None else ""),
     )
     fig.axes[0].set_yscale("log")
-    if threshold is not None:
-        fig.axes[0].axhline(threshold, color="tab:red", linestyle="--", linewidth=1)
+    if detector is not None:
+        fig.axes[0].axhline(detector.threshold, color="tab:red", linestyle="--", linewidth=1)
     files.append(plots.save_figure(fig, plot_dir / f"relative-gap-{kind}.png"))
     curves = {eta: roc_curve(rel[0.0], scores) for eta, scores in rel.items() if eta > 0}
+    points = None
+    if detector is not None:  # the alarm as deployed: the shares of the η = 0 and of the η targets it flags
+        false_alarms = float(detector.decide_many(rel[0.0]).mean())
+        points = {eta: (false_alarms, float(detector.decide_many(rel[eta]).mean())) for eta in curves}
     files.append(
         plots.save_figure(
             plots.roc_curves(
@@ -84,6 +89,8 @@ def _plots(
                     eta: (per_eta[f"{eta:g}"][f"auc_ci_low_{kind}"], per_eta[f"{eta:g}"][f"auc_ci_high_{kind}"])
                     for eta in curves
                 },
+                operating_points=points,
+                alpha=None if detector is None else detector.false_alarm_rate,
             ),
             plot_dir / f"roc-{kind}.png",
         )
@@ -120,7 +127,7 @@ def _description(metrics: dict, kind: str) -> str:
         f"Median d_E at η=0: "
         f"{eta['0'][f'd_e_median_{kind}']:.3f} ({kind}), {eta['0']['d_e_median_paper']:.3f} (paper). False alarms on new "
         f"in-ODD targets: {odd['flagged']} of {odd['n']} ({odd['rate']:.3f}, 95 % interval [{odd['ci_low']:.3f}, "
-        f"{odd['ci_high']:.3f}])."
+        f"{odd['ci_high']:.3f}]; a calibrated decision flags {odd['calibrated_low']}–{odd['calibrated_high']})."
     )
 
 
@@ -162,8 +169,9 @@ def task3(params_path: str = "params.yaml") -> dict:
     atomic_write_bytes(out / "experiments.json", json.dumps(records).encode())
     figures = []
     for kind, es in experiments.items():
-        threshold = detector.threshold if kind == calibrated_on else None
-        figures += _plots(out / "plots", kind, es, threshold, model_name, metrics["eta"])
+        figures += _plots(
+            out / "plots", kind, es, detector if kind == calibrated_on else None, model_name, metrics["eta"]
+        )
 
     tracking.log_domain_task(
         stage.paths.root,
@@ -192,7 +200,8 @@ def task3(params_path: str = "params.yaml") -> dict:
     eta0 = metrics["eta"]["0"]
     logger.info(
         "task3: %s experiments in %.1f s; d_E median at η=0: %s; AUC (%s targets, 95 %% intervals): %s; threshold "
-        "%.3g (α = %.2f): %d of %d in-ODD %s targets of new seeds flagged, %.3f [%.3f, %.3f]",
+        "%.3g (α = %.2f): %d of %d in-ODD %s targets of new seeds flagged, %.3f [%.3f, %.3f] (a calibrated decision "
+        "flags %d–%d at 95 %%%s)",
         metrics["experiments"],
         seconds,
         ", ".join(f"{kind} {eta0[f'd_e_median_{kind}']:.3g}" for kind in kinds),
@@ -206,6 +215,9 @@ def task3(params_path: str = "params.yaml") -> dict:
         odd["rate"],
         odd["ci_low"],
         odd["ci_high"],
+        odd["calibrated_low"],
+        odd["calibrated_high"],
+        ": above it, the decision breaks its promise" if odd["exceeds_alpha"] else "",
     )
     return metrics
 

@@ -24,6 +24,7 @@ import torch
 
 from components.core import seeding
 from components.features.backbones import EMBEDDED, PRETRAINED, Backbone, available, get_backbone
+from components.features.backbones.imageops import MIN_SIDE
 
 SEED = 2026
 N = 6
@@ -122,6 +123,19 @@ def test_shapes_and_dtypes(name: str, roots: dict[str, Path], images: np.ndarray
         _assert_close(out.detach().numpy(), f, "train-mode forward vs extract")  # GroupNorm: no batch statistics
     else:
         assert not any(p.requires_grad for p in b.parameters())  # frozen: features are cached on disk
+
+
+@pytest.mark.parametrize("name", available())
+def test_the_smallest_image_every_backbone_takes(name: str, roots: dict[str, Path], images: np.ndarray) -> None:
+    """``imageops.MIN_SIDE`` is the one bound the ``pidc`` CLI checks before any backbone: each takes images of
+    MIN_SIDE × MIN_SIDE (and a MIN_SIDE-high strip), and refuses one pixel less in either side, naming the bound."""
+    b = _build(name, **_options(name, roots))
+    for h, w in ((MIN_SIDE, MIN_SIDE), (MIN_SIDE, 40)):
+        f = _extract(b, np.ascontiguousarray(images[:2, :h, :w]))
+        assert f.shape == (2, b.dim) and np.isfinite(f).all()
+    for h, w in ((MIN_SIDE - 1, MIN_SIDE), (MIN_SIDE, MIN_SIDE - 1)):
+        with pytest.raises(ValueError, match=f"at least {MIN_SIDE}×{MIN_SIDE} pixels, got {h}×{w}"):
+            _extract(b, np.ascontiguousarray(images[:2, :h, :w]))
 
 
 @pytest.mark.parametrize("name", available())

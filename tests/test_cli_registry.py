@@ -251,7 +251,8 @@ def test_characterize_a_folder_with_bad_images(world, capsys, tmp_path):
 
 
 def test_characterize_writes_parquet_and_one_corner_plot_per_image(world, capsys, tmp_path):
-    pq = pytest.importorskip("pyarrow.parquet")
+    import pyarrow.parquet as pq
+
     images = [world["clear"] / "000.png", world["night"] / "000.png"]
     out_file = tmp_path / "out" / "draws.parquet"
     code, out, _ = run(
@@ -773,7 +774,8 @@ def test_unwritable_outputs_are_one_line_before_any_work(world, capsys, tmp_path
 
 
 def test_images_below_the_backbones_minimum_are_skipped(world, capsys, tmp_path):
-    """The cues refuse images under 8×8 pixels: such a file is skipped with one line; the run goes on."""
+    """No backbone takes images under 8×8 pixels (``imageops.MIN_SIDE``, the bound every backbone checks): such a file
+    is skipped with one line; the run goes on."""
     folder = tmp_path / "small"
     tiny = small_images(folder, [(1, 1), (4, 6)])
     shutil.copy(world["clear"] / "000.png", folder / "good.png")
@@ -782,12 +784,12 @@ def test_images_below_the_backbones_minimum_are_skipped(world, capsys, tmp_path)
     skipped = [line for line in err.splitlines() if line.startswith("pidc characterize: skipped")]
     assert code == 0 and list(parse_blocks(out)) == [str(folder / "good.png")], err
     assert skipped == [
-        f"pidc characterize: skipped {tiny[0]}: 1×1 pixels; model cues-tiny needs images of at least 8×8",
-        f"pidc characterize: skipped {tiny[1]}: 4×6 pixels; model cues-tiny needs images of at least 8×8",
+        f"pidc characterize: skipped {tiny[0]}: 1×1 pixels; no backbone takes images under 8×8",
+        f"pidc characterize: skipped {tiny[1]}: 4×6 pixels; no backbone takes images under 8×8",
     ]
     assert "characterized 1 image with cues-tiny (100 draws each, seed 0); skipped 2" in err
     code, out, err = run(capsys, "domain", folder, *reg, "--samples", 100)
-    assert code == 0 and "1 image, equal weights" in out and err.count("needs images of at least 8×8") == 2, err
+    assert code == 0 and "1 image, equal weights" in out and err.count("no backbone takes images under 8×8") == 2, err
     code, out, err = run(capsys, "characterize", tiny[0], *reg)
     assert code == 2 and err.strip().splitlines()[-1] == "pidc characterize: error: none of the 1 images could be read"
 
@@ -984,25 +986,70 @@ def test_model_names_that_are_empty_or_malformed_uris(world, capsys):
 
 
 def test_a_models_uri_download_is_removed_after_loading(world, capsys, tmp_path, monkeypatch):
-    """`--model models:/…` downloads the model to a temporary folder: removed once loaded, and after a failure."""
+    """`--model models:/…` downloads the model from a real MLflow store (registered as the export flow registers it,
+    the champion alias set as the evaluate flow sets it) into a temporary folder: removed once loaded, and after a
+    failure. The store is the ``mlflow.db`` beside ``--registry``, or ``MLFLOW_TRACKING_URI`` when set."""
     import tempfile
+
+    import mlflow
+
+    from components.core.config import load_params
+    from flows import tracking
+
+    params = load_params()
+    base = tmp_path / "project"  # <project>/registry/cues-tiny and <project>/mlflow.db, as the pipeline leaves them
+    shutil.copytree(world["registry"] / "cues-tiny", base / "registry" / "cues-tiny")
+    store = f"sqlite:///{base / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", store)
+    try:
+        client = mlflow.MlflowClient(store)
+        client.create_experiment(params.train.experiment, artifact_location=str(base / "mlartifacts"))  # not ./mlruns
+        entry = tracking.register_model(base / "registry" / "cues-tiny", params, base, "cues-tiny")
+        found = tracking.set_champion_alias(base, params, {"cues-tiny": {}}, "cues-tiny")
+    finally:
+        mlflow.set_tracking_uri(None)  # the process-wide URI that register_model set
+    uri = tracking.champion_uri(params)
+    assert uri == "models:/pidc@champion" and found["champion"] == {"version": entry["version"], "uri": uri}
+    shutil.rmtree(base / "registry" / "cues-tiny")  # the model can only come from the MLflow store now
 
     temp = tmp_path / "temp"
     temp.mkdir()
-    monkeypatch.setattr(tempfile, "tempdir", str(temp))
-    calls = []
-
-    def download(cmd, **kwargs):  # stands for `mlflow artifacts download`: the export's extra_files
-        calls.append(cmd)
-        shutil.copytree(world["registry"] / "cues-tiny", Path(cmd[cmd.index("--dst-path") + 1]) / "extra_files")
-        return subprocess.CompletedProcess(cmd, 0, "", "")
-
-    monkeypatch.setattr(subprocess, "run", download)
+    monkeypatch.setenv("TMPDIR", str(temp))
+    monkeypatch.setattr(tempfile, "tempdir", None)  # tempfile reads TMPDIR again
+    made = []
+    mkdtemp = tempfile.mkdtemp
+    monkeypatch.setattr(tempfile, "mkdtemp", lambda *a, **kw: made.append(mkdtemp(*a, **kw)) or made[-1])
+    image = world["clear"] / "000.png"
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)  # the store beside --registry
     code, out, err = run(
-        capsys, "characterize", world["clear"] / "000.png", "--model", "models:/pidc@champion", "--samples", 100
+        capsys, "characterize", image, "--registry", base / "registry", "--model", uri, "--samples", 100
     )
-    assert code == 0 and len(parse_blocks(out)) == 1 and len(calls) == 1, err
-    assert list(temp.iterdir()) == []
-    monkeypatch.setattr(subprocess, "run", lambda cmd, **kw: subprocess.CompletedProcess(cmd, 1, "", "no such model"))
-    code, _, err = run(capsys, "characterize", world["clear"] / "000.png", "--model", "models:/pidc@nobody")
-    assert code == 2 and "not found in the MLflow store" in err and list(temp.iterdir()) == []
+    assert code == 0, err
+    local = run(
+        capsys, "characterize", image, "--registry", world["registry"], "--model", "cues-tiny", "--samples", 100
+    )
+    assert local[0] == 0 and out == local[1], "the registered model is the exported one"
+    ((_, rows),) = parse_blocks(out).values()
+    check_rows(rows)
+    assert [Path(d).parent for d in made] == [temp] and Path(made[0]).name.startswith("pidc-model-")
+    assert list(temp.iterdir()) == [], "the download was removed"
+
+    made.clear()
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", store)  # over the (absent) mlflow.db beside world["registry"]
+    missing = "models:/pidc@nobody"
+    code, out, err = run(capsys, "characterize", image, "--registry", world["registry"], "--model", missing)
+    assert code == 2 and out == "", err
+    assert err.startswith(f"pidc characterize: error: {missing}: not found in the MLflow store {store}: "), err
+    assert "alias nobody not found" in err, err  # the store reached holds `pidc`, only not that alias
+    assert len(made) == 1 and list(temp.iterdir()) == [] and not (world["root"] / "mlflow.db").exists()
+
+    made.clear()  # no MLFLOW_TRACKING_URI and no mlflow.db beside --registry: refused, no empty store created there
+    monkeypatch.delenv("MLFLOW_TRACKING_URI")
+    code, out, err = run(capsys, "characterize", image, "--registry", world["registry"], "--model", missing)
+    db = world["registry"].resolve().parent / "mlflow.db"
+    assert (
+        code == 2
+        and out == ""
+        and f"{missing}: no MLflow store: MLFLOW_TRACKING_URI is not set and there is no {db}" in err
+    ), err
+    assert not db.exists() and list(temp.iterdir()) == []

@@ -10,7 +10,7 @@ from scipy import stats
 
 from components.core.seeding import rng
 from components.domains.absolute import Domain
-from components.domains.deconvolution import _proposal_log_v0, deconvolve, em_path, select_steps
+from components.domains.deconvolution import _proposal_log_v0, deconvolve, em_path, one_standard_error, select_steps
 from components.domains.distances import wasserstein_1d
 
 
@@ -77,6 +77,27 @@ def test_em_increases_the_likelihood_and_starts_at_the_prior_then_the_mixture():
     v1 = np.exp(path.log_v[1])
     # step 1 is the mixture of posteriors: the support is a sample of it, so its weights are nearly equal
     assert 1.0 / np.sum(v1**2) > 0.9 * len(v1)
+
+
+def test_the_one_standard_error_rule_on_scores_whose_answer_is_known():
+    """Candidates 0…4 whose per-image scores are the best's minus a known mean gap, with a known spread across the
+    images: the rule picks the first whose gap is within the standard error of the paired differences (0.1 / √N for
+    a spread 0.1) — here candidate 2 (gap 0.01 ≤ 0.0141 < 0.02); with the spread ten times as large (error 0.141), candidate 1 (gap 0.02;
+    candidate 0's 0.2 is still beyond it); with image weights the standard error is the weighted one."""
+    n = 50
+    z = np.tile([1.0, -1.0], n // 2)  # mean 0, standard deviation exactly 1 over the images
+    gaps = np.array([0.2, 0.02, 0.01, 0.0, 0.005])
+    best = np.linspace(-3.0, -2.0, n)
+    for spread, expected in ((0.1, 2), (1.0, 1)):
+        scores = best[None, :] - gaps[:, None] + spread * np.abs(gaps[:, None] > 0) * z[None, :]
+        assert one_standard_error(scores, np.full(n, 1 / n)) == expected, spread
+    # weights: half the images carry 0.9 of the weight; the weighted spread, not the plain one, sets the error
+    w = np.where(np.arange(n) < n // 2, 0.9, 0.1) / (n // 2)
+    scores = best[None, :] - gaps[:, None] + 0.1 * np.abs(gaps[:, None] > 0) * z[None, :]
+    diff = scores - scores[3][None, :]
+    mean = diff @ w
+    se = np.sqrt((diff**2 @ w - mean**2) / n)
+    assert one_standard_error(scores, w) == int(np.flatnonzero(mean >= -se)[0]) == 2
 
 
 def test_select_steps_is_seeded_and_refuses_bad_folds():

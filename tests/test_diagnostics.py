@@ -149,6 +149,21 @@ def test_hdr_mass_is_the_level_when_the_truth_is_the_estimate():
         hdr_mass(dist.logpdf(own), dist.logpdf(other), 1.0)
 
 
+def test_a_decision_at_any_threshold_is_a_vertex_of_the_roc_curve():
+    """The ODD alarm flags a score above its threshold t: its (false-, true-positive rate) on the same targets is a
+    point of :func:`roc_curve` (the rule "≥ s" at the smallest score above t) — where ``roc-fresh.png`` marks it —
+    for thresholds between, on, below and above the scores, and with ties."""
+    r = seeding.rng(7, "test", "roc-vertex")
+    neg, pos = r.gamma(2.0, 1.0, 40), r.gamma(3.0, 1.0, 25)
+    neg[:5] = pos[:5]  # ties across the classes
+    fpr, tpr, _ = roc_curve(neg, pos)
+    vertices = set(zip(fpr.round(12), tpr.round(12), strict=True))
+    scores = np.r_[neg, pos]
+    for t in np.r_[r.uniform(-1, scores.max() + 1, 200), scores, -np.inf]:
+        point = (round(float((neg > t).mean()), 12), round(float((pos > t).mean()), 12))
+        assert point in vertices, (t, point)
+
+
 @pytest.mark.parametrize(
     ("auc", "negatives", "positives"), [(0.6, 30, 30), (0.8, 30, 30), (0.99, 30, 30), (0.95, 200, 30)]
 )

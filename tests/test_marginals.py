@@ -174,8 +174,10 @@ def test_the_median_interval_holds_the_median_as_often_as_promised(n: int) -> No
 
 
 def test_coverage_intervals_hold_the_coverage_and_bracket_the_share() -> None:
-    """A calibrated posterior's 68 % coverage lies inside its Clopper–Pearson interval, which brackets the share and
-    narrows as 1/√n; a median error's interval brackets the median."""
+    """A calibrated posterior's 68 % coverage is within 4 binomial standard deviations of 0.6827 (a single 95 %
+    interval would miss it in 1 of 20 seeds; its coverage over replicates is checked against scipy in
+    ``test_profile.py``); the Clopper–Pearson interval brackets the share and narrows as 1/√n; a median error's interval
+    brackets the median."""
     rng = seeding.rng(6, "test", "marginals", "intervals")
     mu = rng.uniform(20, 80, size=(N_IMAGES, 2))
     draws = np.clip(mu[:, None, :] + 5 * rng.normal(size=(N_IMAGES, 400, 2)), 0, 100)
@@ -184,7 +186,7 @@ def test_coverage_intervals_hold_the_coverage_and_bracket_the_share() -> None:
     half = marginals.parameter_report(draws[:500], truth[:500], BOX2)["all"]["a"]
     for fig in (full, half):
         assert fig["coverage68_low"] < fig["coverage68"] < fig["coverage68_high"]
-        assert fig["coverage68_low"] < 0.6827 < fig["coverage68_high"]
+        assert abs(fig["coverage68"] - 0.6827) < 4 * math.sqrt(0.6827 * 0.3173 / fig["images"]), fig["coverage68"]
         assert fig["median_abs_error_low"] < fig["median_abs_error"] < fig["median_abs_error_high"]
     width = {k: f["coverage68_high"] - f["coverage68_low"] for k, f in (("full", full), ("half", half))}
     assert width["half"] / width["full"] == pytest.approx(2.0, rel=0.1)  # √(2000 / 500)

@@ -17,7 +17,7 @@ from components.core.config import load_params
 from components.domains.relative import OddDetector
 from components.domains.sweep import FalseAlarmCheck
 from components.domains.task3 import bag_of
-from components.evaluate import task1
+from components.evaluate import diagnostics, task1
 from components.monitor import checks, draws
 from components.monitor.recorded import LABELS, RecordedError, read_recorded
 from components.simulate.contact_sheet import save_png
@@ -71,6 +71,41 @@ def test_the_test_nll_standard_error_is_the_spread_of_the_test_nll_over_repeated
     assert np.std(nll, ddof=1) == pytest.approx(np.mean(se), rel=0.15)
 
 
+@pytest.mark.parametrize("k", [0.5, 1.0, 2.0])
+def test_task1_metrics_of_a_scaled_gaussian_posterior_have_their_closed_forms(k):
+    """A 2-D Gaussian posterior k times as wide as the exact one (truths from the exact N(μᵢ, 1)): the truth lies in
+    the model's HPD region of level l when χ²₂ ≤ −2k² ln(1 − l), so the expected coverage is c(l) = 1 − (1 − l)^{k²}
+    (the signed coverage area is its trapezoid at the levels: k²/(k²+1) − ½ in the limit); π = U^{1/k²} for a uniform
+    U, so its median is ½^{1/k²}; the test NLL is 1/k² + 2 ln k + ln 2π nats. Each figure of 2 000 images with 500
+    draws is within 4.5 of its standard errors of the closed form (the coverage area's from the images' own spread,
+    the median's from π's density at it, the NLL's the reported one), plus the draws' resolution 1/500 where a
+    figure counts draws."""
+    n, draws = 2000, 500
+    rng = seeding.rng(13, "monitoring-test", "closed-forms", f"{k:g}")
+    lp, lp_truth = _gaussian_run(rng, n, draws, k)
+    metrics, coverage, pi = task1.task1_metrics(lp, lp_truth, 10.0, 0.1)
+    levels = task1.LEVELS
+    exact = 1 - (1 - levels) ** (k**2)
+    area = float(np.trapezoid(exact - levels, levels))
+    assert area == pytest.approx(k**2 / (k**2 + 1) - 0.5, abs=0.01)  # the levels' trapezoid is close to the integral
+    cred = diagnostics.hpd_credibility(lp, lp_truth)
+    per_image = np.trapezoid((cred[:, None] <= levels).astype(float) - levels, levels, axis=1)
+    assert metrics["coverage_auc_gap"] == pytest.approx(float(per_image.mean()), abs=1e-12)
+    se = per_image.std(ddof=1) / np.sqrt(n)
+    assert abs(metrics["coverage_auc_gap"] - area) < 4.5 * se + 1 / draws, (metrics["coverage_auc_gap"], area, se)
+    assert np.abs(coverage - exact).max() < 0.05  # every level, not only the area
+    median = 0.5 ** (1 / k**2)
+    density = k**2 * median ** (k**2 - 1)
+    assert abs(metrics["pi_median"] - median) < 4.5 / (2 * density * np.sqrt(n)) + 1 / draws, (
+        metrics["pi_median"],
+        median,
+    )
+    assert np.median(pi) == metrics["pi_median"]
+    nll = 1 / k**2 + 2 * np.log(k) + np.log(2 * np.pi)
+    assert abs(metrics["test_nll"] - nll) < 4.5 * metrics["test_nll_se"], (metrics["test_nll"], nll)
+    assert metrics["info_gain_nats"] == pytest.approx(10.0 - metrics["test_nll"], abs=1e-12)
+
+
 def test_a_calibrated_posterior_raises_the_calibration_alarm_at_the_nominal_rate():
     runs = 400
     rate = _alarm_rate(1.0, runs)
@@ -93,7 +128,9 @@ def test_the_calibration_alarm_names_the_model_and_the_band():
     resized = checks.calibration_alarm("cues-5000", within | {"calibration_error": 0.2, "resized_images": 12})
     assert resized.startswith(message) and "; 12 of the images were resized from another size" in resized
     assert checks.calibration_alarm("cues-5000", within | {"resized_images": 12}) is None
-    odd = checks.FalseAlarmTest(FalseAlarmCheck.of(np.ones(10, bool), 0.1, "fresh"), LEVEL, 0, 4, "binomial", (0, 4))
+    odd = checks.FalseAlarmTest(
+        FalseAlarmCheck.of(np.ones(10, bool), OddDetector(1.0, 0.1, 100), "fresh"), LEVEL, 0, 4, "binomial", (0, 4)
+    )
     found = checks.alarms({"a": within, "b": within | {"calibration_error": 0.5}}, odd, "a")
     assert [m.split(":")[0] for m in found] == ["calibration alarm", "ODD false-alarm alarm"]
     assert "b has" in found[0] and "a's ODD decision flagged 10 of 10" in found[1] and "more than" in found[1]
@@ -157,7 +194,7 @@ def test_grown_in_odd_gaps_raise_the_false_alarm_alarm():
     counts, detector = _false_alarm_counts(m, n, alpha, 200, shift=2.0)  # gaps twice as large: a drift
     low, high, _ = checks.false_alarm_interval(n, alpha, LEVEL, m, detector.rank)
     assert np.mean(counts > high) > 0.9
-    test = checks.FalseAlarmTest.of(FalseAlarmCheck.of(np.arange(n) < counts[0], alpha, "fresh"), detector, LEVEL)
+    test = checks.FalseAlarmTest.of(FalseAlarmCheck.of(np.arange(n) < counts[0], detector, "fresh"), detector, LEVEL)
     assert test.alarm == (counts[0] > test.high) and test.message("m").startswith("ODD false-alarm alarm")
     row = test.to_dict()
     assert row["interval_low"] == low and row["interval_high"] == high and row["flagged"] == counts[0]

@@ -245,6 +245,11 @@ def _figures():
             {e: g.random(20) * (1 + e) for e in etas}, {e: g.random(20) + 2 for e in etas}, "η", "δ"
         ),
         "roc": lambda: plots.roc_curves({e: roc_curve(g.random(30), g.random(30) + e) for e in etas[1:]}),
+        "roc_alarm": lambda: plots.roc_curves(
+            {e: roc_curve(g.random(30), g.random(30) + e) for e in etas[1:]},
+            operating_points={e: (0.05, min(1.0, 0.3 + e)) for e in etas[1:]},
+            alpha=0.05,
+        ),
         "marginals_overlay": lambda: plots.marginals_overlay(
             theta, theta[::-1] + 5, theta[::2], reference=theta + 10, notes=[f"W₁ {k}" for k in range(6)]
         ),
@@ -347,6 +352,12 @@ _LP = -np.arange(500, dtype=float) / 100
         (lambda: roc_curve([0.1, np.inf], [1.0]), ValueError, "non-finite"),
         (lambda: plots.roc_curves({0.5: ([0.0, 1.0], [0.0], 0.5)}), ValueError, "one length"),
         (lambda: plots.roc_curves({}), ValueError, "non-empty mapping"),
+        (
+            lambda: plots.roc_curves({0.5: ([0.0, 1.0], [0.0, 1.0], 0.5)}, operating_points={0.4: (0.1, 0.2)}),
+            ValueError,
+            r"operating_points must have the curves' levels \[0.5\], got \[0.4\]",
+        ),
+        (lambda: plots.roc_curves({0.5: ([0.0, 1.0], [0.0, 1.0], 0.5)}, alpha=1.0), ValueError, "alpha must be"),
         (lambda: plots.held_out_curve(np.array([0.0, np.nan]), 1), ValueError, "held_out must be finite"),
         (lambda: plots.held_out_curve(np.zeros(4), 4), ValueError, r"steps must index held_out \(0…3\)"),
         (

@@ -20,6 +20,7 @@ from components.posterior import model as model_module
 from components.posterior.bijection import Z_MAX, IntervalBox, ScaledLogit, as_interval_box
 from components.posterior.checkpoint import load_checkpoint
 from components.posterior.loss import balance_penalty, npe_loss
+from components.posterior.metrics import mean_nll
 from components.posterior.mixture import EqualMixture
 from components.posterior.model import NPE, FlowConfig, finite_rows
 from components.posterior.train import History, TrainingConfig, train
@@ -337,6 +338,25 @@ def test_npe_loss_is_mean_negative_log_prob() -> None:
     assert balanced.penalty > 0 and float(balanced.loss) == pytest.approx(
         plain.nll + 10.0 * balanced.penalty, rel=1e-10
     )
+
+
+def test_mean_nll_is_the_mean_negative_log_density_in_any_batching() -> None:
+    """The stages' ``test_nll`` (and the information gain, the champion rule's score) is −(1/N) Σ log q(θᵢ | xᵢ):
+    the same as one ``log_prob`` call summed in float64, whatever the batch (7 leaves a last batch of 1 of 1 030),
+    and for θ on the box's faces too."""
+    m = _model(2)
+    rng = seeding.rng(0, "test", "mean-nll")
+    theta = BOX.sample(rng, 1030)
+    theta[:40] = _edge_points(BOX, rng, 40)
+    x = torch.tensor(rng.normal(size=(1030, 5)), dtype=torch.float32)
+    with torch.no_grad():
+        expected = -float(m.log_prob(torch.tensor(theta, dtype=torch.float32), x).double().mean())
+        assert math.isfinite(expected)
+        for batch in (7, 512, 1030, 5000):
+            assert mean_nll(m, x, theta, batch) == pytest.approx(expected, rel=1e-12, abs=1e-9), batch
+        # one pair: its own −log q, not an average over the batches
+        one = -float(m.log_prob(torch.tensor(theta[3:4], dtype=torch.float32), x[3:4]).double().sum())
+        assert mean_nll(m, x[3:4], theta[3:4], 7) == pytest.approx(one, rel=1e-12)
 
 
 # --- training -------------------------------------------------------------------------------------------------

@@ -41,8 +41,19 @@ def test_draws_depend_on_the_image_index_only_and_match_the_densities(ensemble):
     np.testing.assert_array_equal(head[0], samples[:3])  # evaluating fewer images keeps the first ones' draws
     assert not np.array_equal(task1.posterior_draws(ensemble, x, truth, 50, seed=12)[0], samples)
     assert samples.shape == (9, 50, 6) and BOX.contains(samples).all()
-    # the draws' log-densities are the posterior's (float32 graphs: a draw pressed against a face may differ more)
-    assert np.quantile(np.abs(lp - ensemble.log_prob(samples, x)), 0.99) < 1e-3
+    # every draw's log-density is the posterior's, to float32 rounding: the flows run in float32, whose spacing at
+    # |log q| ∈ [32, 64) is 3.8e-6; measured max |lp − log_prob| 3.8e-6 here and 7.6e-6 over 61 seeds (27 450
+    # draws), so 8e-5 is a 10× margin. The one exception, by design: a draw within EDGE_EPS·width of a face of the
+    # box (|z| > 13.8155, here 1 of 450; 45 of 27 450 over the 61 seeds) carries the density of its own z, while
+    # log_prob takes the density at the point clipped onto that margin (the two differed by up to 1.5 nats); such
+    # draws must stay rare (< 1 %) for the exemption not to hollow the check out.
+    dense = ensemble.log_prob(samples, x)
+    u = (samples - BOX.low) / BOX.width
+    edge = np.any((u < weather.EDGE_EPS) | (u > 1 - weather.EDGE_EPS), axis=-1)
+    assert np.abs(lp - dense)[~edge].max() < 8e-5, np.abs(lp - dense)[~edge].max()
+    assert edge.mean() < 0.01, edge.sum()
+    clipped = BOX.low + BOX.width * np.clip(u, weather.EDGE_EPS, 1 - weather.EDGE_EPS)
+    np.testing.assert_allclose(dense[edge], ensemble.log_prob(clipped, x)[edge], rtol=0, atol=1e-6)
     np.testing.assert_allclose(lp_truth, ensemble.log_prob(truth, x), atol=1e-9)
     with pytest.raises(ValueError, match=r"theta must have shape \(9, 6\)"):
         task1.posterior_draws(ensemble, x, truth[:4], 50, seed=11)

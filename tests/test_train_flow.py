@@ -57,6 +57,16 @@ def test_train_logs_the_grid_in_mlflow_and_saves_a_loadable_model(project, monke
     theta = torch.tensor([[50.0, 10.0, 20.0, 30.0, 40.0, 50.0]])
     x = torch.zeros(1, header["features"])
     assert torch.isfinite(model.log_prob(theta, x)).all()
+    # the reported test NLL recomputed apart from the stage: the saved model on features of the test split's images
+    # computed now by the backbone (not read from the feature cache), −mean log q(θ | x) over the whole split
+    from components.features.backbones import get_backbone
+    from components.simulate import dataset
+
+    test = dataset.open_split(folder / "data", "test")
+    fresh = torch.from_numpy(get_backbone("cues").extract(test.images()))
+    with torch.no_grad():
+        lp = model.log_prob(torch.from_numpy(test.theta.astype(np.float32)), fresh).double()
+    assert len(test) == 48 and -float(lp.mean()) == pytest.approx(metrics["test_nll"], rel=1e-5)
     # the base scales τ fitted on the validation split (train.temperature), outside and inside the regime
     # (train.temperature_regime: night), are saved with the model and reported, with the gate's accuracy
     names = header["box"]["names"]
@@ -67,7 +77,7 @@ def test_train_logs_the_grid_in_mlflow_and_saves_a_loadable_model(project, monke
 
     train_model("cnn", 8, str(params))  # a backbone trained jointly with the flow
     cnn, h = load_npe(folder / "models/cnn-8/model.pt")
-    assert h["trainable_backbone"] and h["input_shape"] is not None
+    assert h["trainable_backbone"] and tuple(h["input_shape"]) == (3, 64, 64)  # the cnn's input size
 
     client = mlflow.MlflowClient(uri)
     exp = client.get_experiment_by_name("pidc-grid")

@@ -78,7 +78,15 @@ def _download(uri: str, registry: Path, dest: Path) -> Path:
     import os
     import subprocess
 
-    store = os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{registry.resolve().parent / 'mlflow.db'}"
+    store = os.environ.get("MLFLOW_TRACKING_URI")
+    if not store:  # the project's store; MLflow would create an empty one where there is none
+        db = registry.resolve().parent / "mlflow.db"
+        if not db.is_file():
+            raise CLIError(
+                f"{uri}: no MLflow store: MLFLOW_TRACKING_URI is not set and there is no {db} beside --registry "
+                f"{registry} (run pidc from the project folder, pass --registry PATH, or set MLFLOW_TRACKING_URI)"
+            )
+        store = f"sqlite:///{db}"
     cmd = [sys.executable, "-m", "mlflow", "artifacts", "download", "--artifact-uri", uri, "--dst-path", str(dest)]
     try:
         r = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "MLFLOW_TRACKING_URI": store})
@@ -212,27 +220,24 @@ def _width_first(message: str) -> str:
     )
 
 
-def _size_refusal(model: Any, size: tuple[int, int], error: ValueError) -> str:
-    """Why the model's backbone refused images of ``size`` (H, W): its minimum when its error names one."""
-    h, w = size
-    least = re.search(r"at least (\d+)×(\d+)", str(error))
-    if least:
-        return f"{w}×{h} pixels; model {model.name} needs images of at least {least[2]}×{least[1]}"
-    return f"{w}×{h} pixels; model {model.name} cannot take it ({error})"
-
-
 def _model_inputs(model: Any, images: list[np.ndarray]) -> tuple[np.ndarray | None, dict[int, str]]:
-    """The model's inputs of ``images`` (one batch per size), leaving out the sizes its backbone refuses (e.g. images
-    below its minimum size): → (the inputs of the others, in order; None when none is left, {index: reason})."""
+    """The model's inputs of ``images`` (one batch per size), leaving out those no backbone takes (a side below
+    :data:`~components.features.backbones.imageops.MIN_SIDE` pixels) and any size its backbone refuses: → (the inputs
+    of the others, in order; None when none is left, {index: reason})."""
     from components.core.images import group_by_size
+    from components.features.backbones.imageops import MIN_SIDE
 
     rows: dict[int, np.ndarray] = {}
     refused: dict[int, str] = {}
     for idx, batch in group_by_size(images):
+        h, w = batch.shape[1:3]
+        if min(h, w) < MIN_SIDE:
+            refused.update(dict.fromkeys(idx, f"{w}×{h} pixels; no backbone takes images under {MIN_SIDE}×{MIN_SIDE}"))
+            continue
         try:
             y = np.asarray(model.inputs(batch))
-        except ValueError as e:  # the backbone's check of the batch: its minimum size (none is exposed otherwise)
-            refused.update(dict.fromkeys(idx, _size_refusal(model, batch.shape[1:3], e)))
+        except ValueError as e:  # the backbone's own check of the batch
+            refused.update(dict.fromkeys(idx, f"{w}×{h} pixels; model {model.name} cannot take it ({e})"))
             continue
         rows.update(zip(idx, y, strict=True))
     if not rows:

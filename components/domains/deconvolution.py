@@ -40,7 +40,7 @@ from components.core.seeding import derive_seed, rng
 from components.domains.absolute import Domain, _check_count
 from components.domains.kernel import KernelDomain
 
-__all__ = ["EmPath", "Deconvolution", "em_path", "select_steps", "deconvolve", "kernel_scale"]
+__all__ = ["EmPath", "Deconvolution", "em_path", "select_steps", "one_standard_error", "deconvolve", "kernel_scale"]
 
 #: kernel bandwidths tried, in units of Scott's rule on the weighted support (log-spaced)
 KERNEL_SCALES = tuple(float(s) for s in np.round(np.geomspace(0.05, 1.0, 14), 4))
@@ -119,13 +119,20 @@ def select_steps(
         with np.errstate(divide="ignore"):
             per_image[:, test] = np.log(np.exp(path.log_v) @ r.T) + top[None, :]
     w = image_weights / image_weights.sum()
-    held_out = per_image @ w
-    best = int(np.argmax(held_out))
-    diff = per_image - per_image[best][None, :]  # (S, N) per-image differences to the best step
-    mean = diff @ w
-    se = np.sqrt(np.maximum((diff * diff) @ w - mean * mean, 0.0) / n)
-    steps = int(np.flatnonzero(mean >= -se)[0])
-    return steps, held_out
+    return one_standard_error(per_image, w), per_image @ w
+
+
+def one_standard_error(per_image: np.ndarray, weights: np.ndarray) -> int:
+    """The one-standard-error rule (Breiman et al. 1984) on held-out scores ``per_image (S, N)`` of S candidates (e.g.
+    EM steps, simplest first) and N images weighted by ``weights (N,)`` (Σ = 1): the first candidate whose weighted
+    mean score is within one standard error of the best's, the error that of the mean of the images' paired
+    differences to the best (weighted second moment over N)."""
+    n = per_image.shape[1]
+    best = int(np.argmax(per_image @ weights))
+    diff = per_image - per_image[best][None, :]  # (S, N) per-image differences to the best candidate
+    mean = diff @ weights
+    se = np.sqrt(np.maximum((diff * diff) @ weights - mean * mean, 0.0) / n)
+    return int(np.flatnonzero(mean >= -se)[0])
 
 
 def kernel_scale(

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import cvxpy as cp
 import numpy as np
+from scipy import stats
 
 from components.core.seeding import derive_seed, rng
 
@@ -37,6 +38,7 @@ if TYPE_CHECKING:
     from components.domains.absolute import Domain
 
 __all__ = [
+    "false_alarm_interval",
     "Characterization",
     "Relation",
     "SimplexLeastSquares",
@@ -357,6 +359,33 @@ class OddDetector:
         if not np.all(np.isfinite(g)) or np.any(g < 0):
             raise ValueError("gaps must be finite and non-negative (mean squared gaps)")
         return g > self.threshold
+
+
+def false_alarm_interval(
+    n: int, alpha: float, level: float, calibration_targets: int | None = None, rank: int | None = None
+) -> tuple[int, int, str]:
+    """The central interval ``[low, high]`` of the number of false alarms among ``n`` in-ODD targets that holds at least
+    ``level`` of its distribution (each tail ≤ (1 − level)/2), and the distribution's name: BB(n, m + 1 − r, r) for a
+    threshold at rank ``rank`` = r of ``calibration_targets`` = m calibration gaps, else the binomial B(n, α)."""
+    if isinstance(n, bool) or int(n) != n or n < 1:
+        raise ValueError(f"n must be a positive number of targets, got {n!r}")
+    if not 0.0 < float(alpha) < 1.0:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha!r}")
+    if not 0.0 < float(level) < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level!r}")
+    if (calibration_targets is None) != (rank is None):
+        raise ValueError("give both calibration_targets and rank, or neither")
+    if calibration_targets is None:
+        dist, name = stats.binom(int(n), float(alpha)), f"binomial(n={int(n)}, α={float(alpha):g})"
+    else:
+        m, r = int(calibration_targets), int(rank)
+        if not 1 <= r <= m:
+            raise ValueError(f"rank must lie in 1…{m} (calibration_targets), got {rank!r}")
+        dist, name = stats.betabinom(int(n), m + 1 - r, r), f"beta-binomial(n={int(n)}, m+1−r={m + 1 - r}, r={r})"
+    tail = (1.0 - float(level)) / 2.0
+    # ppf(q): the smallest k with P(K ≤ k) ≥ q; so P(K < low) < tail and P(K > high) ≤ tail
+    low, high = int(dist.ppf(tail)), int(dist.ppf(1.0 - tail))
+    return low, high, name
 
 
 def _held_out_counts(lam: np.ndarray, capacity: np.ndarray, size: int, r: np.random.Generator) -> np.ndarray:

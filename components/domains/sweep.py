@@ -21,7 +21,8 @@ matches a source exactly where it reuses that source's images. Each experiment r
 (:func:`components.domains.relative.relate`, n_W points): λ̂, the gap δ(λ̂), its relative version, δ for a λ drawn at
 random on the simplex (the chance baseline) and d_E = ‖λ̂ − λ‖₂. :meth:`NoiseSweep.calibrate` calibrates the
 out-of-ODD decision on in-ODD targets (η = 0) of its own seeds, :meth:`NoiseSweep.check_false_alarms` measures its
-false-alarm rate on in-ODD targets of new seeds (:class:`FalseAlarmCheck`, with a Clopper–Pearson interval);
+false-alarm rate on in-ODD targets of new seeds (:class:`FalseAlarmCheck`: the rate's Clopper–Pearson interval and the
+range of counts a calibrated decision gives);
 :func:`summarize_sweep` gives the per-η medians, detection rates at the calibrated threshold and the ROC AUC of η
 against η = 0.
 
@@ -48,6 +49,7 @@ from components.domains.relative import (
     OddDetector,
     SimplexLeastSquares,
     chance_baseline_gap,
+    false_alarm_interval,
     relate,
     simplex_distance,
 )
@@ -81,14 +83,22 @@ class Experiment:
 
 @dataclass(frozen=True)
 class FalseAlarmCheck:
-    """The ODD decision on n in-ODD targets: how many it flagged, the rate and its exact binomial interval.
+    """The ODD decision on n in-ODD targets: how many it flagged, the rate with its exact binomial interval, and the
+    range of counts a perfectly calibrated decision gives.
 
     Attributes:
         targets: the target kind (``"paper"`` or ``"fresh"``).
         n: in-ODD targets decided on; flagged: those declared out of the ODD.
         rate: flagged / n, the measured false-alarm rate.
-        ci_low, ci_high: its Clopper–Pearson interval at :data:`CONFIDENCE` (``scipy.stats.binomtest``).
-        alpha: the rate α the threshold was calibrated for; the promise holds when α ≥ ci_low.
+        ci_low, ci_high: its Clopper–Pearson interval at :data:`CONFIDENCE` (``scipy.stats.binomtest``): where the
+            decision's own rate lies.
+        alpha: the rate α the threshold was calibrated for.
+        calibrated_low, calibrated_high: the central :data:`CONFIDENCE` interval of the count a perfectly calibrated
+            decision flags among n targets exchangeable with its calibration targets
+            (:func:`~components.domains.relative.false_alarm_interval`): beta-binomial for a threshold at rank r of m
+            calibration gaps, which holds the threshold's own spread (the binomial of α alone is too narrow: with
+            m = 400 it would call a calibrated decision's count too high in ~7 % of runs, not 2.5 %).
+        calibrated_distribution: that count's distribution, e.g. ``"beta-binomial(n=200, m+1−r=20, r=381)"``.
     """
 
     targets: str
@@ -98,21 +108,27 @@ class FalseAlarmCheck:
     ci_low: float
     ci_high: float
     alpha: float
+    calibrated_low: int
+    calibrated_high: int
+    calibrated_distribution: str
 
     @classmethod
-    def of(cls, flags: np.ndarray, alpha: float, targets: str) -> FalseAlarmCheck:
-        """From the decisions ``flags (n,)`` (True = flagged) on in-ODD targets of kind ``targets``."""
+    def of(cls, flags: np.ndarray, detector: OddDetector, targets: str) -> FalseAlarmCheck:
+        """From the decisions ``flags (n,)`` (True = flagged) of ``detector`` on in-ODD targets of kind ``targets``."""
         f = np.asarray(flags, dtype=bool).ravel()
         if f.size == 0:
             raise ValueError("a false-alarm check needs at least one in-ODD target")
-        k = int(f.sum())
-        ci = binomtest(k, int(f.size)).proportion_ci(confidence_level=CONFIDENCE, method="exact")
-        return cls(targets, int(f.size), k, k / f.size, float(ci.low), float(ci.high), float(alpha))
+        k, n = int(f.sum()), int(f.size)
+        ci = binomtest(k, n).proportion_ci(confidence_level=CONFIDENCE, method="exact")
+        alpha = float(detector.false_alarm_rate)
+        low, high, name = false_alarm_interval(n, alpha, CONFIDENCE, detector.n_calibration, detector.rank)
+        return cls(targets, n, k, k / n, float(ci.low), float(ci.high), alpha, low, high, name)
 
     @property
     def exceeds_alpha(self) -> bool:
-        """True when the rate is significantly above α (α below the interval): the detector breaks its promise."""
-        return self.alpha < self.ci_low
+        """True when more targets are flagged than a calibrated decision flags with probability
+        1 − (1 − :data:`CONFIDENCE`)/2 (the count above ``calibrated_high``): the decision breaks its promise."""
+        return self.flagged > self.calibrated_high
 
     def to_dict(self) -> dict:
         return asdict(self) | {"exceeds_alpha": self.exceeds_alpha}
@@ -271,7 +287,7 @@ class NoiseSweep:
         s = derive_seed(seed, "sweep", "false-alarm-check")
         gaps = np.array([self.run(0.0, r, s, fresh).relative_gap for r in range(int(n_targets))])
         kind = "fresh" if fresh else "paper"
-        return FalseAlarmCheck.of(detector.decide_many(gaps), detector.false_alarm_rate, kind), gaps
+        return FalseAlarmCheck.of(detector.decide_many(gaps), detector, kind), gaps
 
 
 def summarize_sweep(experiments: Sequence[Experiment], detector: OddDetector) -> dict[str, dict[str, float]]:

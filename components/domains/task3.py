@@ -260,7 +260,7 @@ def task3_metrics(
     rates = {float(key): row[f"flagged_rate_{calibrated_on}"] for key, row in per_eta.items()}
     in_sweep = FalseAlarmCheck.of(
         detector.decide_many([e.relative_gap for e in experiments[calibrated_on] if e.eta == 0.0]),
-        detector.false_alarm_rate,
+        detector,
         calibrated_on,
     )
     return {

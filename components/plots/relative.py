@@ -79,6 +79,8 @@ def roc_curves(
     score_name: str = "δ",
     title: str = "Out-of-ODD detection",
     intervals: Mapping[float, tuple[float, float]] | None = None,
+    operating_points: Mapping[float, tuple[float, float]] | None = None,
+    alpha: float | None = None,
 ) -> Figure:
     """ROC curves of "out of the ODD when the score ≥ s", one per level, AUC in the legend.
 
@@ -88,9 +90,18 @@ def roc_curves(
         score_name: the score's symbol in the title.
         intervals: optional level → ``(low, high)``, each AUC's confidence interval
             (:func:`components.evaluate.diagnostics.auc_interval`), shown in the legend; its levels must be the curves'.
+        operating_points: optional level → ``(fpr, tpr)``, where the deployed decision's threshold puts each curve
+            (the share of in-ODD and of out-of-ODD targets it flags), drawn as a marker on it; the curves' levels.
+        alpha: optional false-alarm rate the threshold was calibrated for, a vertical line at fpr = α.
     """
     if intervals is not None and set(intervals) != set(curves):
         raise ValueError(f"intervals must have the curves' levels {sorted(curves)}, got {sorted(intervals)}")
+    if operating_points is not None and set(operating_points) != set(curves):
+        raise ValueError(
+            f"operating_points must have the curves' levels {sorted(curves)}, got {sorted(operating_points)}"
+        )
+    if alpha is not None and not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha must be a false-alarm rate in (0, 1), got {alpha!r}")
     if not isinstance(curves, Mapping) or not curves:
         raise ValueError("curves must be a non-empty mapping level → (fpr, tpr, auc)")
     checked = {}
@@ -118,6 +129,14 @@ def roc_curves(
             label=f"η = {_level_label(level)}  (AUC {auc:.3f}"
             + ("" if intervals is None else " [{:.2f}, {:.2f}]".format(*intervals[level]))
             + ")",
+        )
+        if operating_points is not None:
+            ax.plot(*operating_points[level], marker="o", markersize=6, color=cmap(0.9 * k / cmap_n), zorder=3)
+    if operating_points is not None:
+        ax.plot([], [], marker="o", linestyle="none", color="black", label="the ODD alarm's threshold on each curve")
+    if alpha is not None:
+        ax.axvline(
+            alpha, color="tab:red", linestyle="--", linewidth=1, label=f"α = {alpha:g}: its calibrated false-alarm rate"
         )
     ax.set_xlim(-0.01, 1.01)
     ax.set_ylim(-0.01, 1.01)

@@ -14,7 +14,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["check_images", "resize_area", "to_unit_chw"]
+__all__ = ["MIN_SIDE", "check_images", "resize_area", "to_unit_chw"]
+
+#: the fewest pixels of an image's height and width that every backbone takes (:func:`check_images`)
+MIN_SIDE = 8
 
 
 def check_images(images: object, *, who: str) -> np.ndarray:
@@ -42,8 +45,8 @@ def check_images(images: object, *, who: str) -> np.ndarray:
     n, h, w, _ = images.shape
     if n == 0:
         raise ValueError(f"{who}: got an empty batch of images (shape {images.shape})")
-    if h < 8 or w < 8:
-        raise ValueError(f"{who}: images must be at least 8×8 pixels, got {h}×{w}")
+    if h < MIN_SIDE or w < MIN_SIDE:
+        raise ValueError(f"{who}: images must be at least {MIN_SIDE}×{MIN_SIDE} pixels, got {h}×{w}")
     return np.ascontiguousarray(images)
 
 

@@ -215,6 +215,7 @@ def evaluate(params_path: str) -> dict:
         champion, runner_up = choose_champion(metrics, params.export.champion_max_calibration_error)
     except NoChampionError:
         (paths.root / CHAMPION_POINTER).unlink(missing_ok=True)  # no stale pick for task2, task3 and the CLI
+        tracking.clear_champion_aliases(paths.root, params)  # nor for models:/pidc@champion (the monitoring)
         table = report.results_table(rows, None, ev.band_level)
         atomic_write_bytes(out / "table.md", table.encode())
         tracking.describe_grid(paths.root, params, test.content_hash, metrics, None, table, grid_files)

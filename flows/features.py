@@ -12,6 +12,7 @@ from pathlib import Path
 
 from prefect import flow, task
 
+from components.core.files import remove_stale_temps
 from components.features import cache as features
 from components.features.backbones import Backbone, get_backbone
 from components.features.options import backbone_options
@@ -79,6 +80,8 @@ def extract_features(backbone_name: str, params_path: str) -> dict:
     root = stage.paths.data
     splits = [dataset.open_split(root, s, verify=True) for s in dataset.SPLITS]
     store = features.FeatureStore(stage.paths.features, backbone_name)
+    for path in remove_stale_temps(store.folder):  # a manifest's write cut short by a kill
+        logger.info("removed %s (left by a killed run)", path)
 
     todo = [
         (s.name, k)

@@ -14,6 +14,7 @@ from prefect import flow, task
 
 from components.core import seeding
 from components.core.config import Params, SimulatorConfig
+from components.core.files import remove_stale_temps
 from components.simulate import dataset
 from components.simulate.base import make_simulator
 from flows.stage import (
@@ -74,6 +75,14 @@ def generate(params_path: str) -> dict:
             else:
                 todo.append(plan.rows(spec))
     logger.info("%d shards already done, %d to render (renderer %s)", done, len(todo), simulator.version)
+    for path in remove_stale_temps(root):  # a manifest's write cut short by a kill
+        logger.info("removed %s (left by a killed run)", path)
+    if todo and (root / "manifest.json").exists():
+        # the manifest describes the shards as they were: while any is rendered anew (a new plan, or a damaged shard)
+        # it must not vouch for them, or a kill would leave it naming new shards of the same size (readers check sizes,
+        # not hashes) beside features of the old images; written again below once every shard is done
+        (root / "manifest.json").unlink()
+        logger.info("removed %s until every shard is done", root / "manifest.json")
 
     t0 = time.perf_counter()
     share_api_with_workers()

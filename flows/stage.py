@@ -80,12 +80,34 @@ def use_all_cores() -> None:
     torch.set_num_threads(max(1, os.cpu_count() or 1))
 
 
+def exit_with_parent(poll_seconds: float = 0.5) -> None:
+    """In a worker process of a stage's process pool: end it as soon as the process that started it is gone.
+
+    A worker of Python's process pool does not watch its parent: a stage killed by a signal left its workers training
+    or rendering on their own (the running task and the next queued one), racing a re-run over the same checkpoint
+    and logging every epoch twice. A daemon thread compares ``os.getppid()`` with the parent at start-up (the flow's
+    process, which spawned the worker) and calls ``os._exit`` when it changes (the orphan was handed to another
+    process)."""
+    import threading
+    import time
+
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(poll_seconds)
+        os._exit(70)
+
+    threading.Thread(target=watch, name="pidc-exit-with-parent", daemon=True).start()
+
+
 def task_runner(cfg: RunnerConfig) -> TaskRunner:
-    """The Prefect task runner ``cfg`` names: threads, processes, or Dask (prefect-dask)."""
+    """The Prefect task runner ``cfg`` names: threads, processes (each worker ends with the stage's process:
+    :func:`exit_with_parent`), or Dask (prefect-dask)."""
     if cfg.kind == "threads":
         return ThreadPoolTaskRunner(max_workers=cfg.workers)
     if cfg.kind == "processes":
-        return ProcessPoolTaskRunner(max_workers=cfg.workers)
+        return ProcessPoolTaskRunner(max_workers=cfg.workers, initializer=exit_with_parent)
     if cfg.kind == "dask":
         from prefect_dask import DaskTaskRunner
 

@@ -32,9 +32,11 @@ scheduled monitoring (``flows/monitor.py``, no stage).
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import json
 import os
+import shutil
 import subprocess
 import tempfile
 import time
@@ -72,6 +74,7 @@ __all__ = [
     "set_champion_alias",
     "describe_grid",
     "download_registered_model",
+    "clear_champion_aliases",
     "flatten_numbers",
     "log_domain_task",
     "MonitoredModel",
@@ -410,6 +413,20 @@ def _alias(client: mlflow.MlflowClient, name: str, alias: str, version: str | No
         pass  # no alias there
 
 
+def clear_champion_aliases(base: Path, params: Params) -> None:
+    """Take the aliases ``champion`` and ``challenger`` away from the registered model (when no model qualifies as
+    champion): ``models:/pidc@champion`` then fails with MLflow's "alias not found" instead of loading the last
+    champion, which the stages, the command line and the monitoring would keep judging as the current one."""
+    client = _client(base)
+    name = registered_model(params)
+    try:
+        client.get_registered_model(name)
+    except mlflow.exceptions.MlflowException:
+        return  # nothing registered, no alias
+    for alias in (CHAMPION_ALIAS, CHALLENGER_ALIAS):
+        _alias(client, name, alias, None)
+
+
 def set_champion_alias(
     base: Path,
     params: Params,
@@ -571,10 +588,12 @@ def registered_folder(base: Path, params: Params, model: str, pointer: Mapping[s
 def download_registered_model(uri: str, base: Path | None = None) -> Path:
     """Download an MLflow registered model (e.g. ``models:/pidc-cnn-3000@champion``) and return the folder of its
     exported graphs and card (the model's extra files), which :meth:`components.export.runtime.OnnxPosterior.load`
-    opens without torch."""
+    opens without torch. The download is a temporary folder, removed when the process exits."""
     if base is not None:
         mlflow.set_tracking_uri(tracking_uri(base))
     dest = Path(tempfile.mkdtemp(prefix="pidc-model-"))
+    # removed when the process ends (a stage, a monitoring run): every run downloaded anew and left ~3 MB behind
+    atexit.register(shutil.rmtree, dest, ignore_errors=True)
     local = Path(mlflow.artifacts.download_artifacts(artifact_uri=uri, dst_path=str(dest)))
     return local / "extra_files"
 

@@ -24,7 +24,7 @@ from prefect import flow, task
 
 from components.core import seeding
 from components.core.config import Params, VariantConfig
-from components.core.files import atomic_write_bytes
+from components.core.files import atomic_write_bytes, remove_stale_temps
 from components.features import cache as features
 from components.features.backbones import get_backbone
 from components.features.options import backbone_options
@@ -132,6 +132,7 @@ def train_model(
     for stale in out.glob("checkpoint-*.pt"):
         if stale != checkpoint:
             stale.unlink()
+    remove_stale_temps(out)  # a checkpoint, model or history cut short by a kill (one trainer per model at a time)
 
     t0 = time.perf_counter()
     tags = {

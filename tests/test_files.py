@@ -7,7 +7,14 @@ import os
 
 import pytest
 
-from components.core.files import atomic_folder, atomic_path, atomic_write_bytes, sha256_file
+from components.core.files import (
+    ATOMIC_TEMP,
+    atomic_folder,
+    atomic_path,
+    atomic_write_bytes,
+    remove_stale_temps,
+    sha256_file,
+)
 
 
 class _Boom(Exception):
@@ -105,3 +112,24 @@ def test_draws_writer_appears_on_close_and_leaves_nothing_on_discard(tmp_path, s
     assert target.read_bytes() != b"old" and writer.rows == 3 and os.listdir(tmp_path) == [target.name]
     if suffix == ".csv":
         assert target.read_text().splitlines() == ["image,draw,a,b"] + [f"img,{i},1.0,1.0" for i in range(3)]
+
+
+def test_remove_stale_temps_takes_only_the_temporary_files_a_killed_writer_leaves(tmp_path):
+    """A write killed inside :func:`atomic_path` leaves its ``.<name>.<8 hex>.tmp``; the clean-up at a stage's start
+    removes those (and only those: targets, other dotfiles, subfolders and look-alikes stay)."""
+    with pytest.raises(KeyboardInterrupt), atomic_path(tmp_path / "model.pt") as tmp:
+        tmp.write_bytes(b"half")
+        left = tmp.with_name(tmp.name + ".copy")  # what a SIGKILL would leave: the temporary file itself
+        left.write_bytes(b"half")
+        raise KeyboardInterrupt
+    stale = tmp_path / left.name.removesuffix(".copy")
+    left.rename(stale)
+    assert ATOMIC_TEMP.match(stale.name)["name"] == "model.pt"
+    keep = [tmp_path / n for n in ("model.pt", ".hidden", ".model.pt.tmp", ".x.0123456.tmp", "a.0123abcd.tmp")]
+    for f in keep:
+        f.write_bytes(b"keep")
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / ".y.0123abcd.tmp").write_bytes(b"not this folder")
+    assert remove_stale_temps(tmp_path) == [stale]
+    assert all(f.exists() for f in keep) and (tmp_path / "sub" / ".y.0123abcd.tmp").exists() and not stale.exists()
+    assert remove_stale_temps(tmp_path / "missing") == []

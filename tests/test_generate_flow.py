@@ -42,6 +42,81 @@ def test_flow_generates_and_resumes_after_damage(tmp_path, prefect_harness):
     assert not list((tmp_path / "data/train").glob(".shard-*")), "temporary files must be cleaned up"
 
 
+def test_a_generate_killed_while_rendering_a_new_plan_leaves_no_manifest_to_trust(
+    tmp_path, prefect_harness, monkeypatch
+):
+    """A new plan (another seed) re-renders shards of the same sizes: while they are rendered the old manifest is gone,
+    so a run killed then leaves readers a clear error, not the old manifest vouching for new shards (readers check
+    sizes, not hashes, and old features would still match it); a manifest write's temporary file left by a kill is
+    removed; the next run finishes and writes the manifest of the new shards."""
+    from components.simulate.dataset import DatasetError
+    from flows.generate import generate
+
+    first = generate(str(write_params(tmp_path)))
+    (tmp_path / "data/.manifest.json.0123abcd.tmp").write_bytes(b"{")  # a manifest write cut short by a kill
+    params = write_params(tmp_path, seed=7)
+    render = dataset.render_shard
+    calls = []
+
+    def killed_after_one(*args, **kwargs):  # fault injection: the run dies after its first new shard
+        if calls:
+            raise KeyboardInterrupt("killed")
+        calls.append(1)
+        return render(*args, **kwargs)
+
+    monkeypatch.setattr(dataset, "render_shard", killed_after_one)
+    with pytest.raises(BaseException, match="killed"):
+        generate(str(params))
+    assert calls and not (tmp_path / "data/manifest.json").exists()
+    assert not (tmp_path / "data/.manifest.json.0123abcd.tmp").exists()
+    with pytest.raises(DatasetError, match="no dataset manifest; run the generate stage"):
+        dataset.open_split(tmp_path / "data", "train")
+    monkeypatch.setattr(dataset, "render_shard", render)
+    second = generate(str(params))
+    assert second["content_hash"] != first["content_hash"]
+    assert dataset.open_split(tmp_path / "data", "train", verify=True).content_hash == second["content_hash"]
+
+
+def test_a_killed_stage_leaves_no_process_pool_worker_behind(tmp_path):
+    """The stages' process pools start each worker with :func:`flows.stage.exit_with_parent`: when the stage's
+    process is killed (SIGKILL, no clean-up) its worker, busy with a long task, ends within seconds instead of
+    finishing it and the next one on its own (Python's workers do not watch their parent)."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    from flows.stage import exit_with_parent, task_runner
+
+    runner = task_runner(
+        load_params(
+            write_params(tmp_path / "p", **{"data.runner": {"kind": "processes", "workers": 1, "dask_address": None}})
+        ).data.runner
+    )
+    assert getattr(runner, "_initializer", None) is exit_with_parent  # what Prefect hands to its ProcessPoolExecutor
+    script = (
+        "import concurrent.futures as cf, multiprocessing as mp, os, signal, sys, time\n"
+        "from flows.stage import exit_with_parent\n"
+        "pool = cf.ProcessPoolExecutor(1, mp_context=mp.get_context('spawn'), initializer=exit_with_parent)\n"
+        "print(pool.submit(os.getpid).result(), flush=True)\n"
+        "pool.submit(time.sleep, 120); pool.submit(time.sleep, 120); time.sleep(1)\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=Path(__file__).parents[1])
+    assert out.returncode == -signal.SIGKILL, out.stderr
+    worker = int(out.stdout.split()[0])
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            os.kill(worker, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.2)
+    else:
+        os.kill(worker, signal.SIGKILL)
+        pytest.fail(f"worker {worker} outlived its killed parent by 10 s")
+
+
 @pytest.mark.parametrize("kind", ["processes", "dask"])
 def test_every_task_runner_gives_the_same_data(tmp_path, prefect_harness, kind):
     from flows.generate import generate

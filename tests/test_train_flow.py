@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import mlflow
 import numpy as np
@@ -329,12 +330,37 @@ def test_export_evaluate_champion(project, monkeypatch, capsys):
         download_registered_model(champion["uri"])
     )  # the torch-free posterior from the registered model's files
     local = OnnxPosterior.load(folder / "registry" / best)
+    # the download is a temporary folder, gone when the process that downloaded it ends
+    import os
+    import subprocess
+    import sys
+
+    code = "import sys; from flows.tracking import download_registered_model as d; print(d(sys.argv[1]))"
+    done = subprocess.run(
+        [sys.executable, "-c", code, champion["uri"]],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "MLFLOW_TRACKING_URI": uri},
+        cwd=Path(__file__).parents[1],
+    )
+    downloaded = Path(done.stdout.strip().splitlines()[-1]) if done.stdout.strip() else None
+    assert done.returncode == 0 and downloaded and downloaded.name == "extra_files", done.stderr
+    assert downloaded.parent.name.startswith("pidc-model-") and not downloaded.parent.exists()
     x = np.random.default_rng(0).normal(size=(4, *local.input_shape)).astype(np.float32)
     theta = local.sample(x, 1, seed=0)[:, 0]
     np.testing.assert_allclose(loaded.log_prob(theta, x), local.log_prob(theta, x), rtol=0, atol=1e-9)
     pyfunc = mlflow.pyfunc.load_model(champion["uri"])  # the ONNX flavor runs the whole density graph
     out = pyfunc.predict({"x": x, "theta": theta.astype(np.float32)})["log_prob"]
     np.testing.assert_allclose(out, local.log_prob(theta, x), atol=1e-3)
+
+    # when no model qualifies, the evaluate stage takes both aliases away: no stale champion for the monitoring
+    from flows import tracking
+
+    tracking.clear_champion_aliases(folder, load_params(grid))
+    for alias in ("champion", "challenger"):
+        with pytest.raises(mlflow.exceptions.MlflowException, match="not found"):
+            client.get_model_version_by_alias("pidc", alias)
+    tracking.clear_champion_aliases(folder, load_params(grid))  # none left: nothing to take away, no error
 
 
 def test_evaluate_refuses_a_model_with_another_theta_order(project, tmp_path):

@@ -14,6 +14,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from components.cli.errors import CLIError
+from components.core.files import ATOMIC_TEMP
 
 __all__ = [
     "check_output",
@@ -36,9 +37,6 @@ OUTPUT_OPTIONS: dict[str, str] = {
 }
 #: The options that size the arrays a command allocates (named when memory runs out).
 SIZE_OPTIONS: dict[str, str] = {"samples": "--samples", "points": "--points", "draws_per_image": "--draws-per-image"}
-
-#: The temporary names of :func:`components.core.files.atomic_path`: ``.<target name>.<8 hex>.tmp`` beside the target.
-_ATOMIC_TEMP = re.compile(r"^\.(?P<name>.+)\.[0-9a-f]{8}\.tmp$")
 
 
 def _existing_folder(path: Path) -> Path:
@@ -91,7 +89,7 @@ def check_not_input(outputs: Iterable[tuple[str, Path | None]], inputs: Iterable
 def _user_path(name: str | os.PathLike[str]) -> Path:
     """The file the user named behind ``name``: the target of an :func:`atomic_path` temporary name, else ``name``."""
     path = Path(name)
-    m = _ATOMIC_TEMP.match(path.name)
+    m = ATOMIC_TEMP.match(path.name)
     return path.with_name(m["name"]) if m else path
 
 

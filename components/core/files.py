@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import secrets
 import shutil
 import tempfile
@@ -20,7 +21,10 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["atomic_path", "atomic_folder", "atomic_write_bytes", "sha256_file"]
+__all__ = ["ATOMIC_TEMP", "atomic_path", "atomic_folder", "atomic_write_bytes", "remove_stale_temps", "sha256_file"]
+
+#: The temporary names of :func:`atomic_path`: ``.<target name>.<8 hex>.tmp`` beside the target.
+ATOMIC_TEMP = re.compile(r"^\.(?P<name>.+)\.[0-9a-f]{8}\.tmp$")
 
 
 @contextmanager
@@ -85,6 +89,19 @@ def atomic_folder(target: str | os.PathLike[str]) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def remove_stale_temps(folder: str | os.PathLike[str]) -> list[Path]:
+    """Delete the temporary files of :func:`atomic_path` (:data:`ATOMIC_TEMP`) that a killed writer left in
+    ``folder`` (not its subfolders), e.g. a checkpoint cut short by a kill; returns them. Call it only where no other
+    writer can be at work in the folder (a stage's start): a live writer's temporary file looks the same."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    stale = sorted(f for f in folder.iterdir() if f.is_file() and ATOMIC_TEMP.match(f.name))
+    for f in stale:
+        f.unlink(missing_ok=True)
+    return stale
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:

@@ -187,15 +187,18 @@ def train_model(
 
         from components.plots import loss_curves, save_figure
 
+        # the model's files hold only what the model is: this run's wall_seconds (reports/train, MLflow) would change
+        # models/ on every re-run of an unchanged model, and with it every stage after train
+        kept = {k: v for k, v in metrics.items() if k != "wall_seconds"}
         save_npe(
             out / "model.pt",
             model,
             backbone=backbone_name,
             backbone_options=options,
-            extra={"model_id": model_id, "size": size, "data_hash": data_hash, "metrics": metrics},
+            extra={"model_id": model_id, "size": size, "data_hash": data_hash, "metrics": kept},
         )
         atomic_write_bytes(out / "history.json", json.dumps(history.to_dict(), indent=1).encode())
-        atomic_write_bytes(out / "metrics.json", json.dumps(metrics, indent=1).encode())
+        atomic_write_bytes(out / "metrics.json", json.dumps(kept, indent=1).encode())
         atomic_write_bytes(paths.reports("train", f"{model_id}.json"), json.dumps(metrics, indent=1).encode())
         save_figure(
             loss_curves({"train": history.train_loss, "val": history.val_loss}, title=f"{model_id}: NPE loss"),

@@ -77,8 +77,8 @@ def _plots(
     curves = {eta: roc_curve(rel[0.0], scores) for eta, scores in rel.items() if eta > 0}
     points = None
     if detector is not None:  # the alarm as deployed: the shares of the η = 0 and of the η targets it flags
-        false_alarms = float(detector.decide_many(rel[0.0]).mean())
-        points = {eta: (false_alarms, float(detector.decide_many(rel[eta]).mean())) for eta in curves}
+        flagged = {float(k): row[f"flagged_rate_{kind}"] for k, row in per_eta.items()}
+        points = {eta: (flagged[0.0], flagged[eta]) for eta in curves}
     files.append(
         plots.save_figure(
             plots.roc_curves(

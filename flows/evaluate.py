@@ -12,20 +12,36 @@ all, day and night truths. Writes ``reports/task1/``: ``metrics.json`` (model �
 (the same by bin of the true value, :mod:`components.evaluate.profile`), ``coverage.json``,
 ``table.md`` (the README's results table) and PNG plots; logs them to each model's MLflow run; names the champion
 (:mod:`components.evaluate.champion`): MLflow aliases ``champion`` and ``challenger`` (the runner-up) and the pointer
-``reports/task1/champion.json``.
+``reports/task1/champion.json`` (written before the aliases move: a kill between the two leaves the aliases behind
+the pointer, never ahead of it).
+
+Each model's finished evaluation (its result and its plots) is kept under ``.cache/task1/<model>/<key>/``
+(:meth:`ProjectPaths.kept`, outside the stage's DVC outputs, which DVC removes when the stage starts), written
+atomically, the key covering all it depends on (:func:`evaluation_key`: the model card, the test data and features,
+the settings, the code and library versions). A later run with the same key reuses it (the plots copied into
+``reports/task1/plots/<model>/``), so a killed evaluate redoes only the models it had not finished; ``reports/task1/``
+is the same to the byte whether a model was evaluated or reused (the flow uses the kept result in both cases).
 """
 
 from __future__ import annotations
 
+import hashlib
+import importlib.metadata
+import inspect
 import json
+import platform
 import time
+from pathlib import Path
 
 import numpy as np
 from prefect import flow, task
 
 from components import plots
-from components.core import seeding
-from components.core.files import atomic_write_bytes
+from components.core import kept, seeding
+from components.core.code import code_fingerprint
+from components.core.config import Params
+from components.core.files import atomic_write_bytes, sha256_file
+from components.core.paths import ProjectPaths
 from components.evaluate import marginals, profile, report, task1
 from components.evaluate.champion import NoChampionError, champion_pointer, choose_champion
 from components.export.lookup import CHAMPION_POINTER
@@ -35,17 +51,144 @@ from components.features.backbones import get_backbone
 from components.simulate import dataset
 from components.simulate.base import make_simulator
 from flows import tracking
-from flows.stage import at_most, open_stage, parse_stage_args, share_api_with_workers, task_runner
+from flows.stage import Stage, at_most, open_stage, parse_stage_args, share_api_with_workers, task_runner
 
 
 def _write_json(path, value) -> None:
     atomic_write_bytes(path, json.dumps(value, indent=1).encode())
 
 
+#: The project modules a model's evaluation (:func:`_evaluate_into`) runs: their import closure is the code of its key.
+EVALUATION_MODULES = (
+    "components.core.seeding",
+    "components.evaluate.marginals",
+    "components.evaluate.profile",
+    "components.evaluate.task1",
+    "components.export.runtime",
+    "components.features.backbones",
+    "components.features.cache",
+    "components.plots",
+    "components.simulate.base",
+    "components.simulate.dataset",
+)
+#: The libraries whose versions can change a model's figures or plot files (distribution names; absent ones count too).
+EVALUATION_LIBRARIES = (
+    "numpy",
+    "onnxruntime",
+    "scipy",
+    "matplotlib",
+    "pillow",
+    "opencv-python-headless",
+    "opencv-python",
+    "torch",
+)
+#: The keys of a model's result (what :func:`_evaluate_into` returns and the flow reads).
+RESULT_KEYS = ("model", "metrics", "coverage", "pi", "parameters", "profiles")
+
+
+def _library(dist: str) -> str:
+    try:
+        return f"{dist}=={importlib.metadata.version(dist)}"
+    except importlib.metadata.PackageNotFoundError:
+        return f"{dist} absent"
+
+
+def evaluation_code() -> str:
+    """The fingerprint of the code a model's evaluation runs: the import closure of :data:`EVALUATION_MODULES`
+    (:func:`components.core.code.code_fingerprint`), the source of :func:`_evaluate_into` (this file's part), the
+    Python and :data:`EVALUATION_LIBRARIES` versions."""
+    extra = [
+        f"python {platform.python_version()}",
+        *map(_library, EVALUATION_LIBRARIES),
+        inspect.getsource(_evaluate_into),
+    ]
+    return code_fingerprint(EVALUATION_MODULES, extra=extra)
+
+
+def _features_identity(paths: ProjectPaths, backbone: str, split: dataset.Split, n: int) -> dict | None:
+    """What identifies the cached features of ``backbone`` for the first ``n`` images of ``split``: the cache's
+    backbone fingerprint and dataset hash (its manifest) and the sha256 of every shard read (their receipts); None
+    when the cache is missing or damaged (the evaluation then fails with the cache's own error, and keeps nothing)."""
+    store = features.FeatureStore(paths.features, backbone)
+    try:
+        manifest = json.loads((store.folder / "manifest.json").read_text())
+        shards, have = [], 0
+        for k, info in enumerate(split.manifest["splits"][split.name]["shards"]):
+            if have >= n:
+                break
+            shards.append(json.loads(store.receipt_path(split.name, k).read_text())["sha256"])
+            have += int(info["count"])
+        return {
+            "fingerprint": manifest["fingerprint"],
+            "dataset_content_hash": manifest["dataset_content_hash"],
+            "shards": shards,
+        }
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def evaluation_key(
+    params: Params, paths: ProjectPaths, model_id: str, split: dataset.Split, n: int, band: float, code: str
+) -> tuple[str, dict]:
+    """The key of ``model_id``'s evaluation (sha256 hex of its parts) and its parts: everything the evaluation reads,
+    so that a kept one is reused only when nothing it depends on has changed — the model (sha256 of its card, which
+    records its graphs' sha256), the test data (content hash) and the features read, the ``evaluate`` settings but
+    the runner, the number of images and the calibration band, the seed, the prior box, the simulator (the PPC
+    re-renders) and the code (:func:`evaluation_code`)."""
+    card_file = paths.registry / model_id / "card.json"
+    backbone = json.loads(card_file.read_text())["backbone"]
+    parts = {
+        "model": model_id,
+        "card_sha256": sha256_file(card_file),
+        "data_content_hash": split.content_hash,
+        "features": _features_identity(paths, backbone, split, n),
+        "images": n,
+        "band": band,
+        "evaluate": params.evaluate.model_dump(mode="json", exclude={"runner"}),
+        "seed": params.seed,
+        "prior": params.model_dump(mode="json", include={"prior"})["prior"],
+        "simulator": params.simulator.model_dump(mode="json"),
+        "code": code,
+    }
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest(), parts
+
+
+def reuse_kept(paths: ProjectPaths, model_id: str, key: str, logger) -> dict | None:
+    """``model_id``'s evaluation kept under ``key`` (:mod:`components.core.kept`), its plots restored into
+    ``reports/task1/plots/<model>/``, or None (logged) when there is none or it cannot be trusted."""
+    folder = paths.kept("task1", model_id)
+    try:
+        entry = kept.read(folder, key)
+        if entry is not None:
+            result = entry["result"]
+            if not isinstance(result, dict) or result.get("model") != model_id or not set(RESULT_KEYS) <= set(result):
+                raise kept.KeptError(f"{folder / key}: no complete result of {model_id}")
+    except kept.KeptError as e:
+        logger.warning("%s: kept evaluation ignored, evaluating again: %s", model_id, e)
+        return None
+    if entry is None:
+        logger.info("%s: no kept evaluation for key %s…: evaluating", model_id, key[:12])
+        return None
+    result = kept.restore(folder, key, entry, paths.reports("task1", "plots", model_id))
+    logger.info("%s: kept evaluation reused (key %s…)", model_id, key[:12])
+    return result
+
+
 @task(name="evaluate-model")
-def evaluate_model(model_id: str, params_path: str, band: float) -> dict:
-    """Task I of one exported model (``band``: the calibration band of the stage's number of images)."""
+def evaluate_model(model_id: str, params_path: str, band: float, key: str, parts: dict) -> dict:
+    """Task I of one exported model (``band``: the calibration band of the stage's number of images), kept under
+    ``key`` (:func:`components.core.kept.keep`); returns the kept result, its plots copied into the reports, as a
+    later run reusing it would."""
     stage = open_stage(params_path)
+    folder = stage.paths.kept("task1", model_id)
+    kept.keep(folder, key, lambda plot_dir: _evaluate_into(stage, model_id, band, plot_dir), parts)
+    result = kept.restore(folder, key, kept.read(folder, key), stage.paths.reports("task1", "plots", model_id))
+    stage.logger.info("%s: evaluation kept (key %s…)", model_id, key[:12])
+    return result
+
+
+def _evaluate_into(stage: Stage, model_id: str, band: float, plot_dir: Path) -> dict:
+    """Task I of one exported model, its plots written into ``plot_dir``; the result (JSON-serializable)."""
     params, paths, ev = stage.params, stage.paths, stage.params.evaluate
     start, cpu = time.perf_counter(), time.thread_time()  # one onnxruntime thread: the calling one
     folder = paths.registry / model_id
@@ -70,7 +213,6 @@ def evaluate_model(model_id: str, params_path: str, band: float) -> dict:
     scored = time.perf_counter()
 
     # posterior predictive checks: the same scene re-rendered under posterior and prior draws
-    plot_dir = paths.reports("task1", "plots", model_id)
     n_ppc = min(ev.ppc_images, n)
     ppc_images = test.images(stop=n_ppc)
     checks = task1.posterior_predictive_checks(
@@ -153,14 +295,17 @@ def evaluate(params_path: str) -> dict:
     n = task1.images_evaluated(ev.images, len(test))
     band = task1.calibration_band(n, ev.samples, ev.band_level, ev.band_replicates, params.seed)
     cards = {m: json.loads((paths.registry / m / "card.json").read_text()) for m in ids}
+    code = evaluation_code()
+    keyed = {m: evaluation_key(params, paths, m, test, n, band, code) for m in ids}
+    reused = {m: r for m in ids if (r := reuse_kept(paths, m, keyed[m][0], logger)) is not None}
     share_api_with_workers()
     done = at_most(
         ev.runner.workers,
-        task1.evaluation_order(ids, cards),
-        lambda m: evaluate_model.submit(m, str(stage.params_file), band),
+        [m for m in task1.evaluation_order(ids, cards) if m not in reused],
+        lambda m: evaluate_model.submit(m, str(stage.params_file), band, *keyed[m]),
         "evaluate models",
     )
-    results = [done[m] for m in ids]
+    results = [reused[m] if m in reused else done[m] for m in ids]
 
     levels = task1.LEVELS
     curves = {r["model"]: (levels, np.array(r["coverage"])) for r in results}
@@ -224,15 +369,19 @@ def evaluate(params_path: str) -> dict:
     atomic_write_bytes(out / "table.md", table.encode())
     grid_files.append(out / "table.md")
     pointer = champion_pointer(metrics, champion, runner_up)
-    aliases = tracking.set_champion_alias(
-        paths.root, params, metrics, champion.model, runner_up.model if runner_up else None
-    )
     pointer |= {"registered_model": tracking.registered_model(params)}
-    pointer |= aliases.get(tracking.CHAMPION_ALIAS, {})
     if runner_up:
         pointer["runner_up"] |= {"registered_model": tracking.registered_model(params)}
-        pointer["runner_up"] |= aliases.get(tracking.CHALLENGER_ALIAS, {})
+    # the pointer first, then the aliases: a kill in between leaves the aliases behind champion.json, never ahead
     _write_json(paths.root / CHAMPION_POINTER, pointer)
+    aliases = tracking.set_champion_alias(
+        paths.root, params, metrics, champion.model, runner_up.model if runner_up else None, paths.registry
+    )
+    if aliases:  # the versions the aliases now name
+        pointer |= aliases.get(tracking.CHAMPION_ALIAS, {})
+        if runner_up:
+            pointer["runner_up"] |= aliases.get(tracking.CHALLENGER_ALIAS, {})
+        _write_json(paths.root / CHAMPION_POINTER, pointer)
     tracking.describe_grid(paths.root, params, test.content_hash, metrics, pointer, table, grid_files)
     logger.info(
         "champion: %s (%s: %s), %s",
@@ -243,6 +392,8 @@ def evaluate(params_path: str) -> dict:
     )
     if runner_up:
         logger.info("runner-up (challenger): %s (%s)", runner_up.model, runner_up.rule)
+    for stale in kept.prune(paths.kept("task1"), {m: k for m, (k, _) in keyed.items()}):
+        logger.info("removed the stale kept evaluation %s", stale)
     return metrics
 
 

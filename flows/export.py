@@ -7,7 +7,9 @@ training size, θ order, units and bijection, input spec, training metrics, data
 onnxruntime version), then registered (:func:`flows.tracking.register_model`). The champion alias comes after the
 evaluation (the ``evaluate`` stage). The exports run ``export.runner.workers`` at a time (the largest models first;
 torch's ONNX exporter is single-threaded Python), the registrations one after the other in the flow, in the order of
-``params.model_ids()``: the registry's version numbers are assigned by one writer, the same on every run.
+``params.model_ids()``: the registry's version numbers are assigned by one writer, the same on every run. An export
+already registered (a version with the same card's SHA-256: the same graphs, metrics and commit) is not registered
+again: a re-run of the stage, or one after a kill, adds only the versions it lacks.
 """
 
 from __future__ import annotations
@@ -40,11 +42,12 @@ def register(model_id: str, params_path: str, exported: dict) -> dict:
     stage = open_stage(params_path)
     entry = tracking.register_model(Path(exported["folder"]), stage.params, stage.paths.root, model_id)
     stage.logger.info(
-        "%s → %s (%s exporter, %.1f s); registered as %s version %s",
+        "%s → %s (%s exporter, %.1f s); %s as %s version %s",
         model_id,
         exported["folder"],
         stage.params.export.exporter,
         exported["export_seconds"],
+        "already registered (the same card)" if entry["reused"] else "registered",
         entry["name"],
         entry["version"],
     )

@@ -184,6 +184,17 @@ def _find_or_create_run(
     return client.create_run(experiment_id, tags=all_tags, run_name=name).info.run_id
 
 
+def _close_abandoned(client: mlflow.MlflowClient, experiment_id: str, tags: Mapping[str, str]) -> list[str]:
+    """Mark KILLED the runs with these tags still RUNNING: a task's or a monitoring's run is created, logged and ended
+    in one go, so one left RUNNING was cut off by a kill, with part of its figures; the new run replaces it. Returns
+    their ids."""
+    query = " and ".join(f"tags.`{k}` = '{v}'" for k, v in tags.items()) + " and attributes.status = 'RUNNING'"
+    closed = [r.info.run_id for r in client.search_runs([experiment_id], query)]
+    for run_id in closed:
+        client.set_terminated(run_id, "KILLED")
+    return closed
+
+
 @dataclass(frozen=True)
 class ModelRun:
     """The active MLflow run of one model's training (inside :func:`model_run`)."""
@@ -193,17 +204,33 @@ class ModelRun:
     def log_params(self, params: Mapping[str, Any]) -> None:
         mlflow.log_params(dict(params))
 
+    @staticmethod
+    def _epoch_metrics(record) -> dict[str, float]:
+        return {
+            "train_loss": record.train_loss,
+            "val_loss": record.val_loss,
+            "lr": record.lr,
+            "epoch_seconds": record.wall_time,
+        }
+
     def log_epoch(self, record) -> None:
-        """Per-epoch losses of :func:`components.posterior.train` (its ``callback``)."""
-        mlflow.log_metrics(
-            {
-                "train_loss": record.train_loss,
-                "val_loss": record.val_loss,
-                "lr": record.lr,
-                "epoch_seconds": record.wall_time,
-            },
-            step=record.epoch,
-        )
+        """Per-epoch losses of :func:`components.posterior.train` (its ``callback``) at the step of the epoch."""
+        mlflow.log_metrics(self._epoch_metrics(record), step=record.epoch)
+
+    def log_history(self, records) -> int:
+        """Log the epochs of ``records`` (a training's whole history) that the run does not hold yet: those trained
+        before a kill whose step the callback did not reach, or all of them when the training resumed from a finished
+        checkpoint into a new run. Returns how many were logged."""
+        from mlflow.entities import Metric
+
+        client = mlflow.MlflowClient()
+        logged = {m.step for m in client.get_metric_history(self.run_id, "val_loss")}
+        missing = [r for r in records if int(r.epoch) not in logged]
+        now = int(time.time() * 1000)
+        rows = [Metric(k, float(v), now, int(r.epoch)) for r in missing for k, v in self._epoch_metrics(r).items()]
+        for i in range(0, len(rows), 1000):  # MLflow's batch limit
+            client.log_batch(self.run_id, metrics=rows[i : i + 1000])
+        return len(missing)
 
     def log_metrics(self, metrics: Mapping[str, float]) -> None:
         mlflow.log_metrics({k: float(v) for k, v in metrics.items()})
@@ -227,31 +254,68 @@ def grid_run(base: Path, params: Params, data_hash: str) -> str:
     return parent
 
 
+def _training_run(
+    client: mlflow.MlflowClient, experiment_id: str, model_id: str, grid: str, run_key: str, parent: str
+) -> str:
+    """The run of this training of ``model_id``: its run under ``parent`` with the same ``pidc.run_key`` (the
+    checkpoint's key: settings, data, features and code), finished or not — a killed training resumes its run, and a
+    re-run that finds the training finished adds to the run that holds its curves instead of starting a second one
+    without them — or a new run. Runs of ``model_id`` under ``parent`` with another key left RUNNING (a killed
+    training whose settings or code have changed since) are marked KILLED: their curves belong to no model."""
+    query = (
+        f"tags.`pidc.model` = '{model_id}' and tags.`pidc.grid` = '{grid}' and tags.`mlflow.parentRunId` = '{parent}'"
+    )
+    found = None
+    for run in client.search_runs([experiment_id], query, order_by=["attributes.start_time DESC"]):
+        if run.data.tags.get("pidc.run_key") == run_key:
+            found = found or run.info.run_id
+        elif run.info.status == "RUNNING":
+            client.set_terminated(run.info.run_id, "KILLED")
+    if found:
+        return found
+    tags = {"pidc.model": model_id, "pidc.grid": grid, "pidc.run_key": run_key, "mlflow.parentRunId": parent}
+    return client.create_run(experiment_id, tags=tags, run_name=model_id).info.run_id
+
+
 @contextmanager
-def model_run(base: Path, params: Params, model_id: str, data_hash: str, tags: Mapping[str, str]) -> Iterator[ModelRun]:
-    """The MLflow run of ``model_id`` under its grid's parent run (both found or created), active inside the block;
-    the parent, a container, is marked finished afterwards (whenever none of its models is training)."""
+def model_run(
+    base: Path, params: Params, model_id: str, data_hash: str, tags: Mapping[str, str], run_key: str
+) -> Iterator[ModelRun]:
+    """The MLflow run of ``model_id``'s training ``run_key`` under its grid's parent run (both found or created:
+    :func:`_training_run`), active inside the block; the parent, a container, is marked finished afterwards (whenever
+    none of its models is training)."""
     client = _client(base)
     experiment_id = _experiment_id(client, params.train.experiment)
     key = grid_key(params, data_hash)
     # found, not re-logged: the train stage's flow created it with its dataset input (grid_run) before any worker
     parent = _find_or_create_run(client, experiment_id, _grid_tags(key), f"grid-{key}")
-    run_id = _find_or_create_run(
-        client, experiment_id, {"pidc.model": model_id, "pidc.grid": key}, model_id, parent=parent
-    )
+    run_id = _training_run(client, experiment_id, model_id, key, run_key, parent)
     _log_data_input(client, run_id, base, "training", {"images_used": str(tags.get("pidc.size", ""))})
     with mlflow.start_run(run_id=run_id, experiment_id=experiment_id):
         mlflow.set_tags(
-            {"pidc.model": model_id, "pidc.grid": key, "git_commit": git_commit(base), "data_hash": data_hash, **tags}
+            {
+                "pidc.model": model_id,
+                "pidc.grid": key,
+                "pidc.run_key": run_key,
+                "git_commit": git_commit(base),
+                "data_hash": data_hash,
+                **tags,
+            }
         )
         yield ModelRun(run_id)
     client.set_terminated(parent, "FINISHED")
 
 
 def newest_model_run(client: mlflow.MlflowClient, experiment_id: str, model_id: str) -> str | None:
-    """The id of the newest MLflow run of ``model_id`` (tag ``pidc.model``) in the experiment, or None."""
+    """The id of the MLflow run of ``model_id`` (tag ``pidc.model``) in the experiment that ended last (MLflow orders
+    runs not ended after those that did; among those, the newest), or None: the run of the model's latest training,
+    also when a re-run reopened an older run of the same training (:func:`model_run`), whose start time is older than
+    another training's."""
     runs = client.search_runs(
-        [experiment_id], f"tags.`pidc.model` = '{model_id}'", order_by=["attributes.start_time DESC"], max_results=1
+        [experiment_id],
+        f"tags.`pidc.model` = '{model_id}'",
+        order_by=["attributes.end_time DESC", "attributes.start_time DESC"],
+        max_results=1,
     )
     return runs[0].info.run_id if runs else None
 
@@ -266,18 +330,36 @@ def champion_uri(params: Params, alias: str = CHAMPION_ALIAS) -> str:
     return f"models:/{registered_model(params)}@{alias}"
 
 
+def _all_versions(client: mlflow.MlflowClient, name: str) -> list[Any]:
+    """Every version of registered model ``name`` (none when it is not registered)."""
+    try:
+        return list(client.search_model_versions(f"name = '{name}'"))
+    except mlflow.exceptions.MlflowException:
+        return []
+
+
 def _versions(client: mlflow.MlflowClient, name: str) -> dict[str, Any]:
     """The newest version of ``name`` per model id (version tag ``pidc.model``)."""
-    try:
-        versions = client.search_model_versions(f"name = '{name}'")
-    except mlflow.exceptions.MlflowException:
-        return {}
     newest: dict[str, Any] = {}
-    for v in versions:
+    for v in _all_versions(client, name):
         model_id = v.tags.get("pidc.model")
         if model_id and (model_id not in newest or int(v.version) > int(newest[model_id].version)):
             newest[model_id] = v
     return newest
+
+
+def exported_version(client: mlflow.MlflowClient, name: str, model_id: str, folder: Path) -> Any | None:
+    """The newest version of ``name`` that registered the export in ``folder`` (``registry/<model id>``): tagged
+    ``pidc.model`` = ``model_id`` and ``card_sha256`` = the SHA-256 of its ``card.json`` (which records the sha256 of
+    every graph), or None. Not "the newest version of the model": a re-export by other code, or a registry folder
+    that DVC restored from its cache without running the export, would make that another export than the one here."""
+    sha = sha256_file(folder / "card.json")
+    found = [
+        v
+        for v in _all_versions(client, name)
+        if v.tags.get("pidc.model") == model_id and v.tags.get("card_sha256") == sha
+    ]
+    return max(found, key=lambda v: int(v.version)) if found else None
 
 
 def registered_versions(base: Path, params: Params) -> dict[str, str]:
@@ -308,8 +390,11 @@ def register_model(folder: Path, params: Params, base: Path, model_id: str) -> d
     card = json.loads((folder / "card.json").read_text())
     client = _client(base)
     experiment_id = _experiment_id(client, params.train.experiment)
-    run_id = newest_model_run(client, experiment_id, model_id)
     name = registered_model(params)
+    same = exported_version(client, name, model_id, folder)
+    if same is not None:  # this very export is registered (a re-run of the stage, a kill after its registration)
+        return {"name": name, "version": str(same.version), "run_id": same.run_id, "reused": True}
+    run_id = newest_model_run(client, experiment_id, model_id)
     extra = sorted(str(p) for p in folder.iterdir() if p.is_file())
     requirements = [f"onnx=={onnx.__version__}", f"onnxruntime=={onnxruntime.__version__}", "numpy"]
     metrics = {k: float(v) for k, v in (card.get("metrics") or {}).items() if isinstance(v, (int, float))}
@@ -339,13 +424,14 @@ def register_model(folder: Path, params: Params, base: Path, model_id: str) -> d
         )
         run = mlflow.active_run().info.run_id
     tags = {
-        "pidc.model": model_id,
         "backbone": str(card.get("backbone")),
         "size": str(card.get("size")),
         "data_hash": str(card.get("data_hash")),
         "git_commit": str(card.get("git_commit")),
         "card_sha256": sha256_file(folder / "card.json"),
         **{f"train.{k}": f"{v:.6g}" for k, v in metrics.items()},
+        # last: a version counts as the model's (``_versions``, :func:`exported_version`) only once it is complete
+        "pidc.model": model_id,
     }
     for k, v in tags.items():
         client.set_model_version_tag(name, version, k, v)
@@ -361,7 +447,7 @@ def register_model(folder: Path, params: Params, base: Path, model_id: str) -> d
         "`pidc.model`), ONNX density graph + card + sampling graphs. `@champion` is the sharpest model calibrated "
         "within noise (reports/task1/champion.json says why), `@challenger` the runner-up.",
     )
-    return {"name": name, "version": version, "run_id": run}
+    return {"name": name, "version": version, "run_id": run, "reused": False}
 
 
 def task1_metric_names(result: Mapping[str, Any]) -> dict[str, float]:
@@ -433,15 +519,36 @@ def set_champion_alias(
     metrics: Mapping[str, Mapping[str, float]],
     champion: str,
     challenger: str | None = None,
+    registry: Path | None = None,
 ) -> dict[str, dict[str, str]]:
-    """Tag the newest registered version of every model in ``metrics`` with its Task I figures (``task1.<metric>``),
-    give the alias ``champion`` to ``champion``'s version and ``challenger`` to ``challenger``'s (the runner-up; the
-    alias is removed when there is none or it is not registered), and tag the models' newest runs ``pidc.role``
-    (champion / challenger / candidate). Returns ``{"champion": {"version", "uri"}, "challenger": {...}}`` for those
-    in the Model Registry (a model not registered is left out)."""
+    """Tag the registered version of every model in ``metrics`` with its Task I figures (``task1.<metric>``), give
+    the alias ``champion`` to ``champion``'s version and ``challenger`` to ``challenger``'s (the runner-up; the alias
+    is removed when there is none or it is not registered), and tag the models' newest runs ``pidc.role`` (champion /
+    challenger / candidate). Returns ``{"champion": {"version", "uri"}, "challenger": {...}}`` for those in the Model
+    Registry (a model not registered is left out).
+
+    A model's version is the one that registered the export evaluated, ``registry/<model id>`` (``registry``; default
+    ``<base>/registry``), found by its card's SHA-256 (:func:`exported_version`), not the newest version of the model
+    id; a model whose folder is there but whose export is not registered is an error naming it (run the export)."""
     client = _client(base)
     name = registered_model(params)
-    versions = _versions(client, name)
+    registry = base / "registry" if registry is None else registry
+    versions: dict[str, Any] = {}
+    unregistered = []
+    for model_id in sorted(set(metrics) | {champion} | ({challenger} if challenger else set())):
+        if not (registry / model_id / "card.json").is_file():
+            continue
+        version = exported_version(client, name, model_id, registry / model_id)
+        if version is None:
+            unregistered.append(model_id)
+        else:
+            versions[model_id] = version
+    if unregistered:
+        raise LookupError(
+            f"{', '.join(f'{registry / m}' for m in unregistered)}: the export there is not registered as a version of "
+            f"{name!r} in the MLflow store {tracking_uri(base)} (no version with its card's sha256); re-run the "
+            "export (`dvc repro -f -s export`)"
+        )
     found: dict[str, dict[str, str]] = {}
     for model_id, values in metrics.items():
         if model_id in versions:
@@ -452,11 +559,8 @@ def set_champion_alias(
             version = str(versions[holder].version)
             client.set_registered_model_alias(name, alias, version)
             found[alias] = {"version": version, "uri": f"models:/{name}@{alias}"}
-        elif versions:
-            try:
-                client.delete_registered_model_alias(name, alias)
-            except mlflow.exceptions.MlflowException:
-                pass  # no alias there
+        elif _all_versions(client, name):
+            _alias(client, name, alias, None)
     experiment = client.get_experiment_by_name(params.train.experiment)
     if experiment is not None:
         for model_id in metrics:
@@ -582,6 +686,14 @@ def registered_folder(base: Path, params: Params, model: str, pointer: Mapping[s
             f"{uri} is {found!r} but reports/task1/champion.json names {expected!r}: the MLflow Model Registry and the "
             "evaluation disagree; re-run the evaluation (`dvc repro evaluate`)"
         )
+    # the same model id, but is it the version the evaluation chose (not a later export of it)?
+    named = pointer.get("version") if model == CHAMPION_ALIAS else (pointer.get("runner_up") or {}).get("version")
+    held = str(_client(base).get_model_version_by_alias(registered_model(params), model).version)
+    if named is not None and str(named) != held:
+        raise ValueError(
+            f"{uri} is version {held} of {expected!r} but reports/task1/champion.json names version {named}: the "
+            "MLflow Model Registry and the evaluation disagree; re-run the evaluation (`dvc repro evaluate`)"
+        )
     return folder
 
 
@@ -628,13 +740,14 @@ def log_domain_task(
     training run when there is one (the champion's, when it evaluates the champion), tagged ``pidc.task`` and
     ``pidc.evaluated_model`` (not ``pidc.model``, which names training runs); ``metrics`` as they are (e.g.
     :func:`flatten_numbers`), each ``series`` name at integer steps (Task III: the per-η figures at step 100·η), the
-    ``artifacts`` files, extra ``tags``, the data as a dataset input (context ``evaluation``) and a ``description``.
-    Returns the run id."""
+    ``artifacts`` files, extra ``tags``, the data as a dataset input (context ``evaluation``) and a ``description``. A
+    run of the same task and model left RUNNING by a kill is marked KILLED first. Returns the run id."""
     from mlflow.entities import Metric
 
     client = _client(base)
     experiment_id = _experiment_id(client, experiment)
     parent = newest_model_run(client, experiment_id, model_id)
+    _close_abandoned(client, experiment_id, {"pidc.task": task, "pidc.evaluated_model": model_id})
     tags = {"pidc.task": task, "pidc.evaluated_model": model_id, "git_commit": git_commit(base), **(tags or {})}
     if parent:
         tags["mlflow.parentRunId"] = parent
@@ -724,7 +837,8 @@ def log_monitoring(
     champion's, else the first model's), ``pidc.alarms`` (their count), the commit and ``tags``; ``metrics`` at the
     step ``day`` − 1970-01-01 in days and the timestamp of ``day``'s midnight (UTC), so that the runs of the experiment
     line up as time series; the ``artifacts`` under ``monitoring/``; a description listing the ``alarms``; status
-    FAILED when there is an alarm, else FINISHED. Returns the run id."""
+    FAILED when there is an alarm, else FINISHED. A run of the same name and date left RUNNING by a kill is marked
+    KILLED first. Returns the run id."""
     import datetime as dt
 
     from mlflow.entities import Metric
@@ -745,6 +859,9 @@ def log_monitoring(
     }
     all_tags[DESCRIPTION] = f"Monitoring of {all_tags['pidc.models']} on {day.isoformat()}: " + (
         "**alarms**:\n\n" + "\n".join(f"- {a}" for a in alarms) if alarms else "no alarm."
+    )
+    _close_abandoned(
+        client, experiment_id, {"pidc.task": "monitor", "pidc.date": day.isoformat(), "mlflow.runName": run_name}
     )
     run_id = client.create_run(experiment_id, tags=all_tags, run_name=run_name).info.run_id
     midnight = dt.datetime(day.year, day.month, day.day, tzinfo=dt.UTC)

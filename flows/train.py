@@ -6,7 +6,8 @@ backbone outputs), stops early on the validation loss, resumes from its checkpoi
 test split (NLL and information gain over the prior). ``train.runner.workers`` models train at a time, the largest
 first, with ``cores // workers`` torch threads each: a training step of these small flows is no faster on two threads
 than on one, so one model per core halves the stage (BENCHMARKS.md, "Training the grid in parallel"). A model whose
-configuration is unchanged finds its finished checkpoint (keyed by the configuration) and costs seconds.
+configuration, data, features and code are unchanged finds its finished checkpoint (keyed by all four:
+:func:`training_code`) and costs seconds; an edit of the code that trains it retrains it.
 MLflow (:mod:`flows.tracking`): one parent run per grid, one child run per model.
 """
 
@@ -20,9 +21,11 @@ from dataclasses import asdict
 
 import numpy as np
 import torch
+import zuko
 from prefect import flow, task
 
 from components.core import seeding
+from components.core.code import code_fingerprint
 from components.core.config import Params, VariantConfig
 from components.core.files import atomic_write_bytes, remove_stale_temps
 from components.features import cache as features
@@ -39,6 +42,18 @@ from flows.stage import at_most, open_stage, parse_stage_args, share_api_with_wo
 
 #: the stage's name in dvc.yaml (tagged on every model's MLflow run)
 STAGE = "train"
+
+
+def training_code(backbone) -> str:
+    """The fingerprint of the code that decides a model's trained weights: the project modules the training imports
+    (:mod:`components.posterior.train`, the model, its flows, loss and optimisation, and their imports), the module of
+    a backbone trained with the flow (the ``cnn``: its network is part of the model; a frozen backbone enters through
+    its features' fingerprint instead), and the versions of torch and zuko. Part of the checkpoint's key: a
+    checkpoint — finished or cut short by a kill — made by other code is never resumed."""
+    modules = ["components.posterior.train"]
+    if backbone.trainable:
+        modules.append(type(backbone).__module__)
+    return code_fingerprint(modules, extra=[f"torch {torch.__version__}", f"zuko {zuko.__version__}"])
 
 
 def find_variant(params: Params, name: str) -> VariantConfig:
@@ -118,12 +133,21 @@ def train_model(
     else:
         model = NPE(None, backbone.dim, params.box, flow_cfg, seed=model_seed)
 
-    # a checkpoint belongs to one configuration: a params change, new data or a new version of the backbone's
-    # features (their fingerprint) starts afresh instead of failing on the checkpoint's data fingerprint
+    # a checkpoint belongs to one configuration: a params change, new data, a new version of the backbone's features
+    # (their fingerprint) or an edit of the training code starts afresh instead of resuming (or returning, finished)
+    # what other settings or other code trained
     data_hash = splits["train"].content_hash
     run_key = hashlib.sha256(
         json.dumps(
-            [asdict(cfg), asdict(flow_cfg), model_seed, data_hash, options, features.output_fingerprint(backbone)],
+            [
+                asdict(cfg),
+                asdict(flow_cfg),
+                model_seed,
+                data_hash,
+                options,
+                features.output_fingerprint(backbone),
+                training_code(backbone),
+            ],
             sort_keys=True,
             default=str,
         ).encode()
@@ -140,7 +164,7 @@ def train_model(
         "pidc.size": str(size),
         "dvc_stage": STAGE,
     }
-    with tracking.model_run(paths.root, params, model_id, data_hash, tags) as run:
+    with tracking.model_run(paths.root, params, model_id, data_hash, tags, run_key) as run:
         run.log_params(
             {
                 "backbone": backbone_name,
@@ -162,6 +186,8 @@ def train_model(
             progress=False,  # parallel workers: one log line per tenth of the epochs instead of interleaved bars
             mirror=backbone.mirror_inputs if cfg.mirror else None,
         )
+        # the epochs this run lacks: a finished checkpoint found by a new run, an epoch whose callback a kill cut off
+        run.log_history(history.records)
         model.eval()
         # post-hoc calibration on the validation split (deterministic: resuming re-fits the same τ); with a regime,
         # its gate is fitted on the training pairs first

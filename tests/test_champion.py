@@ -10,6 +10,7 @@ import pytest
 import yaml
 
 from components.core.config import PROJECT_ROOT, ConfigError, parse_params
+from components.core.files import sha256_file
 from components.evaluate.champion import NoChampionError, champion_pointer, choose_champion
 
 
@@ -132,9 +133,18 @@ def test_aliases_champion_and_challenger_move_between_versions_of_one_registered
     assert name == "pidc" and tracking.champion_uri(params) == "models:/pidc@champion"
     client.create_registered_model(name)
     runs = {}
-    for m in ("a", "b", "c", "a"):  # a is exported twice: its newest version is the one that counts
+
+    def export(m: str, card: str) -> str:
+        """registry/<m> with this card, registered as a new version of ``name`` (tagged as register_model tags)."""
+        folder = tmp_path / "registry" / m
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "card.json").write_text(card)
         runs[m] = client.create_run(experiment, tags={"pidc.model": m}).info.run_id
-        client.create_model_version(name, source=str(tmp_path / m), run_id=runs[m], tags={"pidc.model": m})
+        tags = {"pidc.model": m, "card_sha256": sha256_file(folder / "card.json")}
+        return client.create_model_version(name, source=str(folder), run_id=runs[m], tags=tags).version
+
+    for m, card in (("a", "a1"), ("b", "b"), ("c", "c"), ("a", "a2")):  # a exported twice: registry/a holds the 2nd
+        export(m, card)
     assert tracking.registered_versions(tmp_path, params) == {"a": "4", "b": "2", "c": "3"}
 
     found = tracking.set_champion_alias(tmp_path, params, metrics, "a", "b")
@@ -149,6 +159,20 @@ def test_aliases_champion_and_challenger_move_between_versions_of_one_registered
     found = tracking.set_champion_alias(tmp_path, params, metrics, "c", "unregistered")  # the next evaluation
     assert set(found) == {"champion"} and found["champion"]["version"] == "3"
     assert client.get_registered_model(name).aliases == {"champion": 3}, "the challenger alias left with no holder"
+
+    # the version of the export in registry/, not the newest: a was registered again by other code (a 5th version)
+    # while registry/a went back to the first export's files (e.g. DVC restored them from its cache)
+    export("a", "a3")
+    (tmp_path / "registry" / "a" / "card.json").write_text("a1")
+    found = tracking.set_champion_alias(tmp_path, params, metrics, "a", "c")
+    assert found["champion"]["version"] == "1" and found["challenger"]["version"] == "3"
+    # an export in registry/ that no version registered: an error naming it, and the aliases stay where they were
+    (tmp_path / "registry" / "b" / "card.json").write_text("b, exported again but not registered")
+    with pytest.raises(LookupError, match=r"registry/b: the export there is not registered as a version of 'pidc'"):
+        tracking.set_champion_alias(tmp_path, params, metrics, "b", "a")
+    assert client.get_registered_model(name).aliases == {"champion": 1, "challenger": 3}
+    (tmp_path / "registry" / "b" / "card.json").write_text("b")
+    (tmp_path / "registry" / "a" / "card.json").write_text("a2")
 
     result = {
         "model": "a",

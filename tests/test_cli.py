@@ -169,6 +169,41 @@ def test_a_failed_write_names_the_users_file_not_a_temporary_one(capsys, tmp_pat
     assert err == f"pidc render: error: -o {target}: cannot write there (No such file or directory)"
 
 
+def test_check_outputs_removes_what_a_killed_write_of_the_same_outputs_left(tmp_path):
+    """A ``pidc`` killed while writing (SIGKILL: no clean-up) leaves ``.<name>.<8 hex>.tmp`` beside the file it was
+    writing; the next run's output check removes those of the outputs it was given, and nothing else."""
+    from components.cli.outputs import check_outputs
+
+    draws, corner = tmp_path / "d.csv", tmp_path / "sub" / "c.png"
+    corner.parent.mkdir()
+    stale = [tmp_path / ".d.csv.0123abcd.tmp", corner.parent / ".c.png.fedcba98.tmp"]
+    keep = [
+        tmp_path / ".hidden",
+        tmp_path / ".d.csv.tmp",
+        tmp_path / ".d.csv.0123abc.tmp",
+        tmp_path / ".d.csv.0123ABCD.tmp",
+        tmp_path / ".d.csv.0123abcd.tmp.bak",
+        tmp_path / ".other.csv.0123abcd.tmp",  # not an output of this run
+        corner.parent / ".d.csv.0123abcd.tmp",  # d.csv's name, another folder
+    ]
+    for f in stale + keep:
+        f.write_bytes(b"x" * 1000)
+    (tmp_path / ".d.csv.aaaa0000.tmp").mkdir()  # a folder: not a temporary file of a write
+    keep.append(tmp_path / ".d.csv.aaaa0000.tmp")
+    removed = check_outputs([("--samples-out", draws), ("--json", None), ("--corner", corner)])
+    assert sorted(removed) == sorted(stale) and not any(f.exists() for f in stale) and all(f.exists() for f in keep)
+    assert check_outputs([("--samples-out", tmp_path / "new" / "d.csv")]) == []  # a folder the write will make
+
+
+def test_render_removes_the_temporary_file_a_killed_render_left(tmp_path):
+    out, stale, other = tmp_path / "r.png", tmp_path / ".r.png.1fa1588e.tmp", tmp_path / ".r.png.notes"
+    stale.write_bytes(b"half a png")
+    other.write_bytes(b"the user's")
+    args = ["render", "--preset", "clear_noon", "--seed", "1", "--height", "48", "--width", "64", "-o", str(out)]
+    assert main(args) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, other.name])
+
+
 def test_out_of_memory_names_the_size_options(capsys, monkeypatch):
     import components.cli.models as models
 

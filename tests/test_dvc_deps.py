@@ -10,75 +10,26 @@ expanded).
 
 from __future__ import annotations
 
-import ast
 import re
-from functools import cache
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from components.core import code
+from components.core.code import ROOT, import_closure
+
 PACKAGES = ("components", "flows")
 
 
-def module_file(module: str) -> Path | None:
-    """The project file of a dotted module name, or None if it is not a project module."""
-    if module.split(".")[0] not in PACKAGES:
-        return None
-    base = ROOT.joinpath(*module.split("."))
-    if (base / "__init__.py").is_file():
-        return base / "__init__.py"
-    if base.with_suffix(".py").is_file():
-        return base.with_suffix(".py")
-    return None
-
-
-def _module_name(path: Path) -> str:
-    parts = list(path.relative_to(ROOT).with_suffix("").parts)
-    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
-
-
-@cache
-def direct_imports(path: Path) -> frozenset[Path]:
-    """Project files that ``path`` imports anywhere in it (relative imports resolved)."""
-    tree = ast.parse(path.read_text(), filename=str(path))
-    package = _module_name(path) if path.name == "__init__.py" else _module_name(path).rpartition(".")[0]
-    found: set[Path] = set()
-    for node in ast.walk(tree):
-        names: list[str] = []
-        if isinstance(node, ast.Import):
-            names = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")
-                base = base[: len(base) - (node.level - 1)]
-                mod = ".".join(base + ([node.module] if node.module else []))
-            else:
-                mod = node.module or ""
-            names = [mod] + [f"{mod}.{a.name}" for a in node.names]  # `from pkg import submodule`
-        for name in names:
-            parts = name.split(".")
-            for i in range(1, len(parts) + 1):  # importing a.b.c runs a/__init__, a/b/__init__, …
-                f = module_file(".".join(parts[:i]))
-                if f is not None:
-                    found.add(f)
-    return frozenset(found)
-
-
 def closure(module: str) -> set[Path]:
-    """Every project file that running ``python -m <module>`` can import."""
-    start = module_file(module)
-    assert start is not None, module
-    todo, seen = [start], set()
-    parts = module.split(".")
-    todo += [f for i in range(1, len(parts)) if (f := module_file(".".join(parts[:i])))]
-    while todo:
-        f = todo.pop()
-        if f in seen:
-            continue
-        seen.add(f)
-        todo.extend(direct_imports(f))
-    return seen
+    """Every project file that running ``python -m <module>`` can import (the closure the checkpoints' and the kept
+    evaluations' code fingerprints hash, over the flows too)."""
+    return import_closure(module, PACKAGES)
+
+
+def direct_imports(path: Path) -> frozenset[Path]:
+    """Project files (components and flows) that ``path`` imports anywhere in it."""
+    return code.direct_imports(path, PACKAGES)
 
 
 def code_files(dep: Path) -> set[Path]:

@@ -337,3 +337,12 @@ def test_mlflow_names_follow_the_metrics(synthetic, tmp_path, monkeypatch):
         }
     )
     assert [a.path for a in client.list_artifacts(run_id, "task3")] == ["task3/metrics.json"]
+
+    # a run of the same task and model cut off by a kill (left RUNNING) is closed when the next one is logged; a
+    # finished run and another model's unfinished run are left as they are
+    experiment = client.get_experiment_by_name("exp").experiment_id
+    cut = client.create_run(experiment, tags={"pidc.task": "task3", "pidc.evaluated_model": "gauss"}).info.run_id
+    other = client.create_run(experiment, tags={"pidc.task": "task3", "pidc.evaluated_model": "cues"}).info.run_id
+    again = tracking.log_domain_task(tmp_path, "exp", "task3", "gauss", flat, series, [report])
+    assert client.get_run(cut).info.status == "KILLED" and client.get_run(again).info.status == "FINISHED"
+    assert client.get_run(run_id).info.status == "FINISHED" and client.get_run(other).info.status == "RUNNING"

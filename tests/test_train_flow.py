@@ -148,6 +148,14 @@ def test_train_grid_trains_every_model_in_parallel_processes_and_resumes(project
     assert header["flow"]["ensemble"] == 2
 
     files = {f: f.read_bytes() for m in first for f in sorted((folder / "models" / m).iterdir()) if f.is_file()}
+    client = mlflow.MlflowClient(uri)
+    experiment = client.get_experiment_by_name("pidc-grid").experiment_id
+    # a training of cues-24 killed under other settings or code (another run key) left its run RUNNING
+    mine = client.search_runs([experiment], "tags.`pidc.model` = 'cues-24'")[0]
+    stale = client.create_run(
+        experiment,
+        tags={k: mine.data.tags[k] for k in ("pidc.model", "pidc.grid", "mlflow.parentRunId")} | {"pidc.run_key": "0"},
+    ).info.run_id
     again = run(str(grid))  # finished checkpoints: nothing is trained again, the figures are the same
     # and the models' files to the byte (what DVC hashes: an unchanged model does not re-run the stages after train)
     assert {f: f.read_bytes() for f in files} == files
@@ -157,13 +165,58 @@ def test_train_grid_trains_every_model_in_parallel_processes_and_resumes(project
         # the training time is the epochs' (kept from the first run), not the second run's loading and testing
         assert again[m]["training_seconds"] == first[m]["training_seconds"] > 0, m
 
-    client = mlflow.MlflowClient(uri)
-    runs = client.search_runs([client.get_experiment_by_name("pidc-grid").experiment_id])
+    assert client.get_run(stale).info.status == "KILLED", "a killed training's run of another key is closed"
+    client.delete_run(stale)
+    runs = client.search_runs([experiment])
     parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
     children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
     assert len(parents) == 1, "models trained in parallel share one parent run"
-    assert {r.data.tags["pidc.model"] for r in children} == set(first)
+    # the second run added to each model's run (its run key: the checkpoint's) instead of a second run without curves
+    assert sorted(r.data.tags["pidc.model"] for r in children) == sorted(first)
     assert all(r.data.tags["mlflow.parentRunId"] == parents[0].info.run_id for r in children)
+    for r in children:
+        steps = [m.step for m in client.get_metric_history(r.info.run_id, "val_loss")]
+        assert sorted(steps) == list(range(first[r.data.tags["pidc.model"]]["epochs_run"])), "each epoch once"
+        assert r.info.status == "FINISHED"
+
+
+def test_a_checkpoint_of_other_code_is_not_resumed(project, monkeypatch, tmp_path):
+    """An edit of the training code (its fingerprint, :func:`flows.train.training_code`) retrains a model whose
+    finished checkpoint was made by the code before; its new run holds its own curves, and the code's run is found
+    as the model's newest."""
+    import flows.train
+    from flows import tracking
+
+    folder, params = project
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    first = flows.train.train_model("cues", 8, str(params))
+    checkpoints = sorted((folder / "models/cues-8").glob("checkpoint-*.pt"))
+    again = flows.train.train_model("cues", 8, str(params))
+    assert again["training_seconds"] == first["training_seconds"], "unchanged code: the finished checkpoint"
+    assert sorted((folder / "models/cues-8").glob("checkpoint-*.pt")) == checkpoints
+    code = flows.train.training_code
+    monkeypatch.setattr(flows.train, "training_code", lambda backbone: code(backbone) + "-edited")
+    edited = flows.train.train_model("cues", 8, str(params))
+    assert edited["training_seconds"] != first["training_seconds"], "trained again, not resumed"
+    now = sorted((folder / "models/cues-8").glob("checkpoint-*.pt"))
+    assert len(now) == 1 and now != checkpoints, "the other code's checkpoint is gone"
+    assert edited["test_nll"] == pytest.approx(first["test_nll"], abs=1e-6), "the same code trains the same model"
+
+    client = mlflow.MlflowClient(uri)
+    experiment = client.get_experiment_by_name("pidc-grid").experiment_id
+    runs = client.search_runs([experiment], "tags.`pidc.model` = 'cues-8'")
+    assert len(runs) == 2 and len({r.data.tags["pidc.run_key"] for r in runs}) == 2
+    newest = tracking.newest_model_run(client, experiment, "cues-8")
+    assert client.get_run(newest).data.tags["pidc.run_key"] == now[0].stem.removeprefix("checkpoint-")
+    # back to the first code: its run is reopened (no third run) and is again the newest
+    monkeypatch.setattr(flows.train, "training_code", code)
+    flows.train.train_model("cues", 8, str(params))
+    runs = client.search_runs([experiment], "tags.`pidc.model` = 'cues-8'")
+    assert len(runs) == 2
+    assert client.get_run(tracking.newest_model_run(client, experiment, "cues-8")).data.tags["pidc.run_key"] == (
+        checkpoints[0].stem.removeprefix("checkpoint-")
+    )
 
 
 def test_export_evaluate_champion(project, monkeypatch, capsys):
@@ -204,6 +257,11 @@ def test_export_evaluate_champion(project, monkeypatch, capsys):
     assert (folder / "models/cues-16-balanced/model.pt").is_file()
     exported = export_model("cues-16-balanced", str(grid))
     assert exported["name"] == "pidc" and exported["version"] == "5", "the fifth version of the one registered model"
+    assert not exported["reused"]
+    # exported again, the same files (the same card, which holds the graphs' sha256): the version is found, not added
+    again = export_model("cues-16-balanced", str(grid))
+    assert again["reused"] and again["version"] == "5" and again["run_id"] == exported["run_id"]
+    assert len(mlflow.MlflowClient(uri).search_model_versions("name = 'pidc'")) == 5
 
     # the registry folder: card with what the issue names; the runtime agrees with the torch model
     card = json.loads((folder / "registry/cnn-16/card.json").read_text())

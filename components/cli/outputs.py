@@ -50,17 +50,23 @@ def _existing_folder(path: Path) -> Path:
 def check_output(path: Path | None, option: str) -> None:
     """A one-line :class:`CLIError` naming ``option`` and ``path`` unless a file can be written at ``path``: not a
     folder, below a folder (missing folders are made by the write), where a file can be created (a probe file named as
-    :func:`components.core.files.atomic_path`'s temporary files, removed at once). Nothing when ``path`` is None."""
+    :func:`components.core.files.atomic_path`'s temporary files, removed at once); then removes the temporary files
+    a killed earlier write of ``path`` left (:func:`check_outputs`). Nothing when ``path`` is None."""
     check_outputs([(option, path)])
 
 
-def check_outputs(outputs: Iterable[tuple[str, Path | None]]) -> None:
+def check_outputs(outputs: Iterable[tuple[str, Path | None]]) -> list[Path]:
     """:func:`check_output` of each ``(option, path)`` pair, probing each folder once (e.g. one corner plot per
-    image, all in one folder)."""
+    image, all in one folder); then removes the temporary files an earlier run writing the same outputs left when it
+    was killed (``.<name>.<8 hex>.tmp`` beside each output, :data:`components.core.files.ATOMIC_TEMP`; a
+    ``--samples-out`` table may be large); other files are left alone. Another ``pidc`` writing the same output at
+    the same time would lose its temporary file too (and fail, naming the file). Returns the files removed."""
     probed: set[Path] = set()
+    named: list[Path] = []
     for option, path in outputs:
         if path is None:
             continue
+        named.append(path)
         if path.is_dir():
             raise CLIError(f"{option} {path}: is a folder; give a file name")
         folder = _existing_folder(path)
@@ -75,6 +81,33 @@ def check_outputs(outputs: Iterable[tuple[str, Path | None]]) -> None:
         os.close(fd)
         os.unlink(probe)
         probed.add(folder)
+    return _remove_stale_temps(named)
+
+
+def _remove_stale_temps(paths: Iterable[Path]) -> list[Path]:
+    """Delete the :data:`~components.core.files.ATOMIC_TEMP` files of ``paths`` (``.<name>.<8 hex>.tmp`` beside
+    each, not links' targets nor folders) that can be deleted; the ones deleted."""
+    by_folder: dict[Path, set[str]] = {}
+    for path in paths:
+        by_folder.setdefault(path.parent, set()).add(path.name)
+    removed: list[Path] = []
+    for folder, names in by_folder.items():
+        try:
+            with os.scandir(folder) as entries:
+                stale = [
+                    Path(e.path)
+                    for e in entries
+                    if (m := ATOMIC_TEMP.match(e.name)) and m["name"] in names and e.is_file(follow_symlinks=False)
+                ]
+        except OSError:  # a folder the write will create
+            continue
+        for f in sorted(stale):
+            try:
+                f.unlink()
+            except OSError:  # gone meanwhile, or not ours to delete (a shared folder): the write does not need it
+                continue
+            removed.append(f)
+    return removed
 
 
 def check_not_input(outputs: Iterable[tuple[str, Path | None]], inputs: Iterable[Path]) -> None:

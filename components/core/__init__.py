@@ -7,8 +7,11 @@
 - :mod:`~components.core.seeding`: ``derive_seed``/``rng``: every random draw descends from ``seed``.
 - :mod:`~components.core.files`: atomic writes and file hashes.
 - :mod:`~components.core.images`: reading users' image files (the CLI).
+- :mod:`~components.core.code`: the project modules a computation imports and a fingerprint of their source.
+- :mod:`~components.core.kept`: results kept between runs outside the DVC outputs, keyed by what made them.
 
-Used by every stage and the ``pidc`` CLI (``paths`` by the stages only, ``images`` by the CLI only).
+Used by every stage and the ``pidc`` CLI (``paths`` by the stages only, ``images`` by the CLI only, ``code`` by
+``train`` and ``evaluate``, ``kept`` by ``evaluate``).
 """
 
-__all__ = ["weather", "config", "paths", "seeding", "files", "images"]
+__all__ = ["weather", "config", "paths", "seeding", "files", "images", "code", "kept"]

@@ -50,6 +50,12 @@ class ProjectPaths:
         """``registry/``: one exported ONNX folder per model (the ``export`` stage)."""
         return self.root / "registry"
 
+    def kept(self, *parts: str) -> Path:
+        """``.cache/<parts…>``: results a stage keeps between its runs outside its DVC outputs (which DVC removes when
+        the stage starts), each keyed by what made it (inputs, settings, :func:`components.core.code.code_fingerprint`
+        of its code), so a killed or repeated run reuses what is finished and nothing stale."""
+        return self.root.joinpath(".cache", *parts)
+
     def reports(self, *parts: str) -> Path:
         """``reports/<parts…>``: metrics and plots of the stages."""
         return self.root.joinpath("reports", *parts)

@@ -187,34 +187,34 @@ def test_a_checkpoint_of_other_code_is_not_resumed(project, monkeypatch, tmp_pat
     import flows.train
     from flows import tracking
 
-    folder, params = project
+    folder, params = project  # cues-16: trained by the first test (cues-8 must stay untrained for the export test)
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
-    first = flows.train.train_model("cues", 8, str(params))
-    checkpoints = sorted((folder / "models/cues-8").glob("checkpoint-*.pt"))
-    again = flows.train.train_model("cues", 8, str(params))
+    first = flows.train.train_model("cues", 16, str(params))
+    checkpoints = sorted((folder / "models/cues-16").glob("checkpoint-*.pt"))
+    again = flows.train.train_model("cues", 16, str(params))
     assert again["training_seconds"] == first["training_seconds"], "unchanged code: the finished checkpoint"
-    assert sorted((folder / "models/cues-8").glob("checkpoint-*.pt")) == checkpoints
+    assert sorted((folder / "models/cues-16").glob("checkpoint-*.pt")) == checkpoints
     code = flows.train.training_code
     monkeypatch.setattr(flows.train, "training_code", lambda backbone: code(backbone) + "-edited")
-    edited = flows.train.train_model("cues", 8, str(params))
+    edited = flows.train.train_model("cues", 16, str(params))
     assert edited["training_seconds"] != first["training_seconds"], "trained again, not resumed"
-    now = sorted((folder / "models/cues-8").glob("checkpoint-*.pt"))
+    now = sorted((folder / "models/cues-16").glob("checkpoint-*.pt"))
     assert len(now) == 1 and now != checkpoints, "the other code's checkpoint is gone"
     assert edited["test_nll"] == pytest.approx(first["test_nll"], abs=1e-6), "the same code trains the same model"
 
     client = mlflow.MlflowClient(uri)
     experiment = client.get_experiment_by_name("pidc-grid").experiment_id
-    runs = client.search_runs([experiment], "tags.`pidc.model` = 'cues-8'")
+    runs = client.search_runs([experiment], "tags.`pidc.model` = 'cues-16'")
     assert len(runs) == 2 and len({r.data.tags["pidc.run_key"] for r in runs}) == 2
-    newest = tracking.newest_model_run(client, experiment, "cues-8")
+    newest = tracking.newest_model_run(client, experiment, "cues-16")
     assert client.get_run(newest).data.tags["pidc.run_key"] == now[0].stem.removeprefix("checkpoint-")
     # back to the first code: its run is reopened (no third run) and is again the newest
     monkeypatch.setattr(flows.train, "training_code", code)
-    flows.train.train_model("cues", 8, str(params))
-    runs = client.search_runs([experiment], "tags.`pidc.model` = 'cues-8'")
+    flows.train.train_model("cues", 16, str(params))
+    runs = client.search_runs([experiment], "tags.`pidc.model` = 'cues-16'")
     assert len(runs) == 2
-    assert client.get_run(tracking.newest_model_run(client, experiment, "cues-8")).data.tags["pidc.run_key"] == (
+    assert client.get_run(tracking.newest_model_run(client, experiment, "cues-16")).data.tags["pidc.run_key"] == (
         checkpoints[0].stem.removeprefix("checkpoint-")
     )
 

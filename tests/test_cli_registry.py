@@ -1002,6 +1002,15 @@ def test_a_models_uri_download_is_removed_after_loading(world, capsys, tmp_path,
         client.create_experiment(params.train.experiment, artifact_location=str(base / "mlartifacts"))  # not ./mlruns
         entry = tracking.register_model(base / "registry" / "cues-tiny", params, base, "cues-tiny")
         found = tracking.set_champion_alias(base, params, {"cues-tiny": {}}, "cues-tiny")
+        # the stages' check of the alias against champion.json: the model id and the version it names
+        pointer = {"model": "cues-tiny", "version": found["champion"]["version"]}
+        assert (tracking.registered_folder(base, params, "champion", pointer) / "card.json").is_file()
+        with pytest.raises(
+            ValueError, match=r"is version \d+ of 'cues-tiny' but reports/task1/champion.json names ver"
+        ):
+            tracking.registered_folder(base, params, "champion", pointer | {"version": "999"})
+        with pytest.raises(ValueError, match=r"is 'cues-tiny' but reports/task1/champion.json names 'cues-8'"):
+            tracking.registered_folder(base, params, "champion", pointer | {"model": "cues-8"})
     finally:
         mlflow.set_tracking_uri(None)  # the process-wide URI that register_model set
     uri = tracking.champion_uri(params)

@@ -306,15 +306,14 @@ def test_characterize_when_no_image_is_readable(world, capsys, tmp_path):
         "characterize",
         world["mixed"] / "empty.png",
         world["mixed"] / "notimage.png",
-        world["mixed"] / "missing.png",
         "--registry",
         world["registry"],
         "--samples-out",
         tmp_path / "d.csv",
     )
     assert code == 2 and out == ""
-    assert err.count("skipped") == 3 and f"{world['mixed'] / 'missing.png'}: no such file" in err
-    assert err.strip().splitlines()[-1] == "pidc characterize: error: none of the 3 images could be read"
+    assert err.count("skipped") == 2
+    assert err.strip().splitlines()[-1] == "pidc characterize: error: none of the 2 images could be read"
     assert list(tmp_path.iterdir()) == []  # no partial draws file
 
 
@@ -631,6 +630,26 @@ def test_relate_says_where_the_target_differs_and_writes_json_and_a_plot(world, 
             ["relate", "{mix}", "{clear}", "--registry", "{registry}", "--bandwidth-scale", "0"],
             r"--bandwidth-scale must be a positive number, got 0",
         ),
+        # a missing input is refused before the model is loaded, as domain and relate refuse a missing folder
+        (["characterize", "{root}/nowhere/", "--registry", "{registry}"], r": .*/nowhere/: no such folder$"),
+        (
+            ["characterize", "{mixed}/000.png", "{root}/gone.png", "--registry", "{registry}"],
+            r": .*/gone\.png: no such file or folder$",
+        ),
+        # PGF needs a LaTeX engine to typeset: refused before any work, naming the types taken
+        (
+            ["characterize", "{mixed}/000.png", "--registry", "{registry}", "--corner", "{root}/c.pgf"],
+            r"--corner .*c\.pgf: \.pgf \(PGF, LaTeX source\) needs a LaTeX engine, which pidc does not use; use one "
+            r"of .*\.pdf, \.png, .*\.svg",
+        ),
+        (
+            ["domain", "{mix}", "--registry", "{registry}", "--corner", "{root}/d.PGF"],
+            r"--corner .*d\.PGF: \.PGF \(PGF, LaTeX source\) needs a LaTeX engine",
+        ),
+        (
+            ["relate", "{mix}", "{clear}", "--registry", "{registry}", "--plot", "{root}/r.pgf"],
+            r"--plot .*r\.pgf: \.pgf \(PGF, LaTeX source\) needs a LaTeX engine",
+        ),
     ],
 )
 def test_user_errors_are_one_clear_line(world, capsys, args, message):
@@ -789,7 +808,7 @@ def test_images_below_the_backbones_minimum_are_skipped(world, capsys, tmp_path)
     code, out, err = run(capsys, "domain", folder, *reg, "--samples", 100)
     assert code == 0 and "1 image, equal weights" in out and err.count("no backbone takes images under 8×8") == 2, err
     code, out, err = run(capsys, "characterize", tiny[0], *reg)
-    assert code == 2 and err.strip().splitlines()[-1] == "pidc characterize: error: none of the 1 images could be read"
+    assert code == 2 and err.strip().splitlines()[-1] == "pidc characterize: error: the only image could not be read"
 
 
 def test_relate_refuses_a_verdict_when_the_kernels_do_not_overlap(world, capsys):
@@ -1058,3 +1077,194 @@ def test_a_models_uri_download_is_removed_after_loading(world, capsys, tmp_path,
         and f"{missing}: no MLflow store: MLFLOW_TRACKING_URI is not set and there is no {db}" in err
     ), err
     assert not db.exists() and list(temp.iterdir()) == []
+
+
+# --- the second CLI audit: notes and skips in every command and in --json, caveats, inputs, names ------------------
+
+
+def gray_copies(source: Path, folder: Path, n: int) -> list[Path]:
+    """Grayscale (mode L) copies of the first ``n`` images of ``source`` in ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for path in sorted(source.glob("*.png"))[:n]:
+        with Image.open(path) as im:
+            im.convert("L").save(folder / f"g{path.name}")
+        out.append(folder / f"g{path.name}")
+    return out
+
+
+COLOURLESS = re.compile(
+    r"^pidc (?P<command>\w+): note: (?P<n>\d+) of (?P<total>\d+) images? (has|have) no colour \(grayscale → RGB: the "
+    r"gray level copied to red, green and blue\): cues-tiny learned from colour renders, and the calibration measured "
+    r"in the pipeline does not cover images without colour"
+)
+
+
+def test_domain_and_relate_say_the_read_notes_and_the_colourless_caveat(world, capsys, tmp_path):
+    """domain and relate say each image's read notes on stderr as characterize does (one line per image for a few,
+    a count per kind and the first files for many), once for all folders; images without colour get a caveat once per
+    command naming how many; --json holds the notes per kind, the caveats and the skipped images with their reasons."""
+    folder = tmp_path / "gray"
+    grays = gray_copies(world["clear"], folder, 8)
+    with Image.open(world["clear"] / "010.png") as im:
+        im.convert("RGBA").save(folder / "rgba.png")
+    (folder / "broken.png").write_bytes(b"")
+    reg = ["--registry", world["registry"], "--samples", 100]
+    code, out, err = run(capsys, "domain", folder, *reg, "--json", tmp_path / "d.json")
+    assert code == 0 and "9 images, equal weights" in out, err
+    notes = [line for line in err.splitlines() if line.startswith("pidc domain: note: ")]
+    shown = ", ".join(map(str, grays[:3]))
+    assert f"pidc domain: note: grayscale → RGB: 8 images ({shown} and 5 more)" in notes, err
+    assert f"pidc domain: note: alpha channel dropped: 1 image ({folder / 'rgba.png'})" in notes, err
+    caveats = [m for line in notes if (m := COLOURLESS.match(line))]
+    assert [(m["n"], m["total"]) for m in caveats] == [("8", "9")], err
+    assert not [line for line in notes if line.startswith(f"pidc domain: note: {grays[0]}: ")], "a count per kind"
+    report = json.loads((tmp_path / "d.json").read_text())
+    assert report["notes"]["grayscale → RGB"] == {"count": 8, "images": list(map(str, grays))}
+    assert report["notes"]["alpha channel dropped"] == {"count": 1, "images": [str(folder / "rgba.png")]}
+    assert report["skipped"] == 1 and report["skipped_images"] == [
+        {"image": str(folder / "broken.png"), "reason": "empty file (0 bytes)"}
+    ]
+    (colourless,) = [c for c in report["caveats"] if c["kind"] == "colourless"]
+    assert colourless["count"] == 8 and colourless["images"] == list(map(str, grays))
+    assert COLOURLESS.match(f"pidc domain: note: {colourless['text']}")
+
+    # a few images: one line each, as characterize's notes
+    few = tmp_path / "few"
+    (one,) = gray_copies(world["clear"], few, 1)
+    shutil.copy(world["clear"] / "001.png", few / "plain.png")
+    code, _, err = run(capsys, "domain", few, *reg)
+    assert code == 0 and f"pidc domain: note: {one}: grayscale → RGB; no colour: outside the calibration" in err, err
+    assert [(m["n"], m["total"]) for line in err.splitlines() if (m := COLOURLESS.match(line))] == [("1", "2")]
+
+    # relate: once for the target and the sources together, counted over all their images
+    code, out, err = run(
+        capsys, "relate", folder, world["clear"], world["overcast"], "--registry", world["registry"],
+        "--calibration-targets", 19, "--json", tmp_path / "r.json",
+    )  # fmt: skip
+    assert code == 0 and "verdict:" in out, err
+    assert [(m["n"], m["total"]) for line in err.splitlines() if (m := COLOURLESS.match(line))] == [("8", "73")], err
+    assert f"pidc relate: note: grayscale → RGB: 8 images ({shown} and 5 more)" in err
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["notes"]["grayscale → RGB"]["count"] == 8 and report["skipped_images"] == [
+        {"image": str(folder / "broken.png"), "reason": "empty file (0 bytes)"}
+    ]
+    assert [c["kind"] for c in report["caveats"]] == ["colourless"]
+
+
+def test_characterize_json_holds_each_images_notes_caveats_and_skips(world, capsys, tmp_path):
+    """--json: a resized image's note carries the resize caveat (it was null), a grayscale one the colour caveat; the
+    skipped images are listed with their reasons; the colour caveat is said once on stderr, naming how many."""
+    folder = tmp_path / "c"
+    (gray,) = gray_copies(world["clear"], folder, 1)
+    big = folder / "big.png"
+    with Image.open(world["clear"] / "002.png") as im:
+        im.resize((64, 64)).save(big)
+    (folder / "broken.png").write_text("not an image")
+    code, out, err = run(
+        capsys, "characterize", folder, "--registry", world["registry"], "--samples", 100, "--json", tmp_path / "c.json"
+    )
+    assert code == 0 and len(parse_blocks(out)) == 2, err
+    report = json.loads((tmp_path / "c.json").read_text())
+    notes = {item["image"]: item["note"] for item in report["images"]}
+    assert notes[str(big)] == (
+        "resized: 64×64 is not a size cues-tiny learned from (32×32 renders): outside the calibration measured in the "
+        "pipeline"
+    )
+    assert (
+        notes[str(gray)]
+        == "grayscale → RGB; no colour: outside the calibration (cues-tiny learned from colour renders)"
+    )
+    assert report["skipped"] == 1 and report["skipped_images"] == [
+        {
+            "image": str(folder / "broken.png"),
+            "reason": "not an image file, or a format Pillow cannot read (cannot identify image file)",
+        }
+    ]
+    assert report["notes"]["resized"] == {"count": 1, "images": [str(big)]}
+    assert sorted(c["kind"] for c in report["caveats"]) == ["colourless", "resized"]
+    assert [(m["n"], m["total"]) for line in err.splitlines() if (m := COLOURLESS.match(line))] == [("1", "2")], err
+    assert len([line for line in err.splitlines() if "learned from 32×32 renders; images of 64×64" in line]) == 1
+
+
+def test_domain_says_what_the_skipped_images_weighed(world, capsys, tmp_path):
+    folder = tmp_path / "w"
+    shutil.copytree(world["mix"], folder)
+    (folder / "c000.png").write_bytes(b"")  # weight 3 of 7, skipped
+    (folder / "o001.png").write_text("not an image")  # weight 2 of 7, skipped
+    weights = tmp_path / "w.csv"
+    weights.write_text("c000.png,3\no001.png,2\nc001.png,1\no002.png,1\n")
+    code, out, err = run(
+        capsys, "domain", folder, "--registry", world["registry"], "--samples", 100, "--weights", weights,
+        "--json", tmp_path / "d.json",
+    )  # fmt: skip
+    assert code == 0 and "2 images, weights from" in out, err
+    assert (
+        "pidc domain: note: weights of skipped images: 5 of 7 (71 %), left out of the domain with the 2 images " in err
+    )
+    report = json.loads((tmp_path / "d.json").read_text())
+    assert report["skipped_weight"] == {"weight": 5.0, "total": 7.0, "share": pytest.approx(5 / 7), "images": 2}
+    assert [s["image"] for s in report["skipped_images"]] == [str(folder / "c000.png"), str(folder / "o001.png")]
+    # nothing skipped: no such line, no such key
+    weights.write_text("c001.png,1\no002.png,1\n")
+    code, _, err = run(
+        capsys, "domain", folder, "--registry", world["registry"], "--samples", 100, "--weights", weights,
+        "--json", tmp_path / "d.json",
+    )  # fmt: skip
+    assert (
+        code == 0
+        and "weights of skipped" not in err
+        and "skipped_weight" not in json.loads((tmp_path / "d.json").read_text())
+    )
+
+
+def test_folders_given_as_dot_are_named_and_one_image_is_one_image(world, capsys, tmp_path, monkeypatch):
+    """`.` and `..` name the folder they resolve to (relate's table, JSON and plot; domain's labels); a target of one
+    image makes in-ODD targets "of 1 image"."""
+    from components.cli.reading import folder_name
+
+    target = tmp_path / "single"
+    target.mkdir()
+    shutil.copy(world["mix"] / "c000.png", target / "a.png")
+    monkeypatch.chdir(world["clear"])
+    code, out, err = run(
+        capsys, "relate", target, ".", world["overcast"], "--registry", world["registry"], "--calibration-targets",
+        19, "--json", tmp_path / "r.json",
+    )  # fmt: skip
+    assert code == 0, err
+    assert re.search(r"^clear\s+32\s+\d\.\d{4}$", out, re.M), out
+    assert "in-ODD targets of 1 image made from the sources" in out and "19 in-ODD targets of 1 image held" in out
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert [s["name"] for s in report["sources"]] == ["clear", "overcast"] and report["target"]["name"] == "single"
+    code, out, err = run(
+        capsys, "domain", ".", "--registry", world["registry"], "--samples", 100, "--json", tmp_path / "d.json"
+    )
+    assert code == 0 and json.loads((tmp_path / "d.json").read_text())["name"] == "clear", err
+    assert folder_name(Path(".")) == "clear" and folder_name(Path("..")) == world["root"].name
+    assert folder_name(Path("/")) == "/" and folder_name(world["mix"]) == "mix"
+
+
+@pytest.mark.parametrize(
+    "store, message",
+    [
+        ("sqlite:///{tmp}/none.db", r"MLFLOW_TRACKING_URI=sqlite:///{tmp}/none\.db: {tmp}/none\.db: no such file"),
+        ("sqlite:///{tmp}", r"MLFLOW_TRACKING_URI=sqlite:///{tmp}: {tmp}: a folder, not a database file"),
+        ("file://{tmp}/mlruns", r"MLFLOW_TRACKING_URI=file://{tmp}/mlruns: {tmp}/mlruns: no such folder"),
+        ("{tmp}/mlruns", r"MLFLOW_TRACKING_URI={tmp}/mlruns: {tmp}/mlruns: no such folder"),
+        ("sqlite://", r"MLFLOW_TRACKING_URI=sqlite:// is an in-memory store, which holds no registered model"),
+    ],
+)
+def test_a_tracking_uri_of_a_store_that_does_not_exist_is_refused(world, capsys, tmp_path, monkeypatch, store, message):
+    """MLflow creates an empty store where MLFLOW_TRACKING_URI names a local one that does not exist, then fails: the
+    CLI refuses it first, naming the URI, and creates nothing."""
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", store.format(tmp=tmp_path))
+    uri = "models:/pidc@champion"
+    code, out, err = run(
+        capsys, "characterize", world["clear"] / "000.png", "--registry", world["registry"], "--model", uri
+    )
+    lines = err.strip().splitlines()
+    assert code == 2 and out == "" and len(lines) == 1, err
+    assert re.fullmatch(
+        rf"pidc characterize: error: {uri}: " + message.format(tmp=re.escape(str(tmp_path))) + ".*", lines[0]
+    ), err
+    assert list(tmp_path.iterdir()) == []

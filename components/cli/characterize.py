@@ -13,13 +13,16 @@ from pathlib import Path
 from components.cli.errors import CLIError
 from components.cli.outputs import check_not_input, check_outputs
 from components.cli.reading import (
+    ReadLog,
     check_figure_path,
+    check_inputs,
     check_json_path,
     check_samples,
     check_seed,
     count,
     list_paths,
     load_model,
+    none_read,
     read_batches,
     save_corner,
     say,
@@ -76,6 +79,7 @@ def cmd_characterize(args: argparse.Namespace) -> int:
             check_draws_path(args.samples_out)
         except (ValueError, ImportError) as e:
             raise CLIError(f"--samples-out {e}") from None
+    check_inputs(args.images)
     paths = _distinct(list_paths(args.images), "characterize")
     corners = _corner_paths(args.corner, paths) if args.corner is not None else {}
     outputs = [("--samples-out", args.samples_out), ("--json", args.json), *(("--corner", c) for c in corners.values())]
@@ -86,8 +90,9 @@ def cmd_characterize(args: argparse.Namespace) -> int:
     writer = None if args.samples_out is None else DrawsWriter(args.samples_out, post.box.names)
     done = 0
     summaries: list[dict] = []  # for --json
+    log = ReadLog("characterize")  # the skips, notes and caveats, for stderr and --json
     try:
-        for read, bar in read_batches(model, paths, "characterize", "characterize"):
+        for read, bar in read_batches(model, paths, "characterize", "characterize", log):
             for i, path in enumerate(read.paths):
                 draws = post.sample(read.x[i : i + 1], n, derive_seed(seed, "characterize", str(path)))[0]
                 head = f"== {path}" + (f"  (note: {read.notes[i]})" if read.notes[i] else "")
@@ -106,7 +111,8 @@ def cmd_characterize(args: argparse.Namespace) -> int:
     if done == 0:
         if writer is not None:
             writer.discard()
-        raise CLIError(f"none of the {len(paths)} images could be read")
+        raise CLIError(none_read(len(paths)))
+    log.finish(model, each=False)  # each image's notes are in its table's head
     if writer is not None:
         writer.close()
         print(f"wrote {count(writer.rows, 'draw')} of {count(done, 'image')} to {writer.path}", file=sys.stderr)
@@ -114,7 +120,7 @@ def cmd_characterize(args: argparse.Namespace) -> int:
     if args.json is not None:
         write_json(
             args.json,
-            {"model": model.name, "seed": seed, "samples": n, "skipped": skipped, "images": summaries},
+            {"model": model.name, "seed": seed, "samples": n, **log.to_json(), "images": summaries},
         )
     print(
         f"characterized {count(done, 'image')} with {model.name} ({count(n, 'draw')} each, seed {seed})"

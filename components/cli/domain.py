@@ -18,12 +18,14 @@ import numpy as np
 from components.cli.errors import CLIError
 from components.cli.outputs import check_not_input, check_outputs
 from components.cli.reading import (
+    ReadLog,
     check_figure_path,
     check_folder,
     check_json_path,
     check_samples,
     check_seed,
     count,
+    folder_name,
     list_paths,
     load_model,
     read_all,
@@ -111,6 +113,31 @@ def _relative(weights: dict[str, float]) -> dict[str, float]:
     return {name: w / top for name, w in weights.items()}
 
 
+def _skipped_weight(given: dict[str, float], relative: dict[str, float], skipped: list[str]) -> dict | None:
+    """What the ``skipped`` images (file names) weighed in a weights file (``given``; ``relative``, the same divided by
+    the largest): ``weight`` and ``total`` in the file's units (None where their sum overflows), ``share`` of the total,
+    and a ``line`` saying so; None when no image with a weight was skipped."""
+    skipped = [name for name in skipped if name in relative]
+    if not skipped:
+        return None
+    share = sum(relative[n] for n in skipped) / sum(relative.values())
+    weight, total = sum(given[n] for n in skipped), sum(given.values())
+    percent = f"{100 * share:.0f}" if share >= 0.01 else f"{100 * share:.2g}"
+    finite = math.isfinite(weight) and math.isfinite(total)
+    line = (
+        f"weights of skipped images: {weight:g} of {total:g} ({percent} %)"
+        if finite
+        else f"weights of skipped images: {percent} % of the total"
+    ) + f", left out of the domain with the {count(len(skipped), 'image')} skipped"
+    return {
+        "weight": weight if finite else None,
+        "total": total if finite else None,
+        "share": share,
+        "images": len(skipped),
+        "line": line,
+    }
+
+
 def cmd_domain(args: argparse.Namespace) -> int:
     """The folder's images as one :class:`components.domains.absolute.Domain`; skipped images do not count as stream steps."""
     from components.domains.absolute import Domain, ExponentialFilter
@@ -128,10 +155,12 @@ def cmd_domain(args: argparse.Namespace) -> int:
     check_not_input(outputs, paths)
     check_outputs(outputs)
     weights: dict[str, float] | None = None
+    given: dict[str, float] = {}  # the weights as the file gives them, to say what the skipped images weighed
     if args.weights is not None:
         by_name = {p.name: p for p in paths}
         try:
-            weights = _relative(read_weights_csv(args.weights, by_name))
+            given = read_weights_csv(args.weights, by_name)
+            weights = _relative(given)
         except ValueError as e:
             raise CLIError(f"--weights {e}") from None
         missing = [name for name in weights if name not in by_name]
@@ -148,7 +177,13 @@ def cmd_domain(args: argparse.Namespace) -> int:
             )
         paths = [by_name[name] for name in weights if weights[name] > 0]
     model = load_model(args)
-    bag = read_all(model, paths, "domain", f"domain {folder.name}", folder)
+    name = folder_name(folder)
+    log = ReadLog("domain")
+    bag = read_all(model, paths, "domain", f"domain {name}", folder, log)
+    log.finish(model, each=True)
+    lost = _skipped_weight(given, weights, [Path(p).name for p, _ in log.skipped]) if weights else None
+    if lost is not None:
+        print(f"pidc domain: note: {lost['line']}", file=sys.stderr)
     if weights is not None:
         how = f"weights from {args.weights}"
         domain = Domain(model.posterior, bag.x, [weights[p.name] for p in bag.paths])
@@ -171,14 +206,18 @@ def cmd_domain(args: argparse.Namespace) -> int:
     if args.json is not None:
         report = {
             "folder": str(folder),
+            "name": name,
             "images": len(bag.paths),
             "weighting": how,
             "effective_size": _effective_size(domain.weights),
             "model": model.name,
             "seed": seed,
+            **log.to_json(),
         }
+        if lost is not None:
+            report["skipped_weight"] = {k: v for k, v in lost.items() if k != "line"}
         write_json(args.json, report | summary.to_dict(box))
     if args.corner is not None:
-        save_corner(draws, box, f"domain {folder.name} — {model.name}", args.corner)
+        save_corner(draws, box, f"domain {name} — {model.name}", args.corner)
         print(f"wrote {args.corner}", file=sys.stderr)
     return 0

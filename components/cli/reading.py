@@ -14,7 +14,7 @@ import re
 import sys
 import warnings
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +27,7 @@ __all__ = [
     "READ_BATCH",
     "MIN_SAMPLES",
     "Read",
+    "ReadLog",
     "load_model",
     "list_paths",
     "read_batches",
@@ -35,10 +36,14 @@ __all__ = [
     "check_seed",
     "check_folder",
     "check_figure_path",
+    "figure_suffixes",
     "check_json_path",
     "write_json",
     "save_corner",
     "count",
+    "none_read",
+    "folder_name",
+    "check_inputs",
     "say",
     "progress",
 ]
@@ -71,10 +76,55 @@ def _check_models_uri(uri: str) -> None:
         )
 
 
+def _local_store(store: str) -> tuple[Path, str] | None:
+    """The file or folder a local MLflow tracking URI names, and which of the two it must be: ``sqlite:///rel.db``
+    and ``sqlite:////abs.db`` a database file, ``file:///path`` or a plain path a file store's folder; None for an
+    in-memory database (``sqlite://``, ``sqlite:///:memory:``, as ``Path("")``) and for other schemes (a server)."""
+    from urllib.parse import unquote, urlparse
+
+    if store.startswith("sqlite:"):
+        rest = store[len("sqlite:") :].split("?", 1)[0]
+        if not rest.startswith("//"):
+            return None
+        path = rest[2:]  # "/rel.db" or "//abs.db" (SQLAlchemy's sqlite:/// + path)
+        path = path[1:] if path.startswith("/") else path
+        return Path(unquote(path)) if path and path != ":memory:" else Path(""), "file"
+    parsed = urlparse(store)
+    if parsed.scheme == "file":
+        return Path(unquote(parsed.path)), "folder"
+    if not parsed.scheme or len(parsed.scheme) == 1:  # a plain path (a drive letter is not a scheme)
+        return Path(store), "folder"
+    return None
+
+
+def _check_local_store(uri: str, store: str) -> None:
+    """A :class:`CLIError` naming ``MLFLOW_TRACKING_URI`` when it names a local store that does not exist: MLflow
+    would create an empty one there (a new SQLite file, a new ``mlruns`` folder) and then not find the model."""
+    found = _local_store(store)
+    if found is None:
+        return
+    path, kind = found
+    if path == Path(""):
+        raise CLIError(f"{uri}: MLFLOW_TRACKING_URI={store} is an in-memory store, which holds no registered model")
+    if kind == "file" and not path.is_file():
+        what = "a folder, not a database file" if path.is_dir() else "no such file"
+        raise CLIError(
+            f"{uri}: MLFLOW_TRACKING_URI={store}: {path.absolute()}: {what} (pidc does not let MLflow create an empty "
+            "store there; set it to the project's store, e.g. sqlite:///mlflow.db in the project folder)"
+        )
+    if kind == "folder" and not path.is_dir():
+        what = "not a folder" if path.exists() else "no such folder"
+        raise CLIError(
+            f"{uri}: MLFLOW_TRACKING_URI={store}: {path.absolute()}: {what} (pidc does not let MLflow create an empty "
+            "store there)"
+        )
+
+
 def _download(uri: str, registry: Path, dest: Path) -> Path:
     """The exported folder of an MLflow registered model ``uri`` (e.g. ``models:/pidc@champion``), downloaded into the
     folder ``dest`` with MLflow's own command line (``mlflow artifacts download``), so that components import no
-    MLflow. The tracking store is ``MLFLOW_TRACKING_URI`` or the project's ``mlflow.db`` beside ``registry``."""
+    MLflow. The tracking store is ``MLFLOW_TRACKING_URI`` or the project's ``mlflow.db`` beside ``registry``; a local
+    store (SQLite file, file store folder) must exist, else MLflow would create an empty one (:func:`_check_local_store`)."""
     import os
     import subprocess
 
@@ -87,6 +137,8 @@ def _download(uri: str, registry: Path, dest: Path) -> Path:
                 f"{registry} (run pidc from the project folder, pass --registry PATH, or set MLFLOW_TRACKING_URI)"
             )
         store = f"sqlite:///{db}"
+    else:
+        _check_local_store(uri, store)
     cmd = [sys.executable, "-m", "mlflow", "artifacts", "download", "--artifact-uri", uri, "--dst-path", str(dest)]
     try:
         r = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "MLFLOW_TRACKING_URI": store})
@@ -172,14 +224,142 @@ class Read:
     x: np.ndarray
 
 
+#: The kinds of the reader's notes (:func:`components.core.images.read_image`), by how a note begins: what a command
+#: counts per kind when it sums up many images' notes, and the keys of ``notes`` in the ``--json`` reports.
+_NOTE_KINDS: tuple[tuple[re.Pattern[str], str], ...] = (
+    (re.compile(r"grayscale → RGB"), "grayscale → RGB"),
+    (re.compile(r"black-and-white → RGB"), "black-and-white → RGB"),
+    (re.compile(r"(\d+)-bit grayscale"), r"\1-bit grayscale → RGB"),
+    (re.compile(r"16-bit RGB"), "16-bit RGB → 8 bits"),
+    (re.compile(r"alpha channel dropped"), "alpha channel dropped"),
+    (re.compile(r"palette image expanded"), "palette → RGB"),
+    (re.compile(r"rotated/flipped"), "EXIF rotation"),
+    (re.compile(r"first of \d+ frames"), "first of several frames"),
+    (re.compile(r"very small"), "very small"),
+    (re.compile(r"only \d+ pixels"), "a side under 32 pixels"),
+    (re.compile(r"not square"), "not square"),
+    (re.compile(r"squashed"), "squashed"),
+    (re.compile(r"resized: "), "resized"),
+    (re.compile(r"taken as a frame already shrunk"), "taken as already shrunk"),
+    (re.compile(r"converted from"), "other pixel format → RGB"),
+    (re.compile(r"no colour: "), "no colour"),
+)
+#: The kinds of images without colour: the reader copies their gray level to red, green and blue.
+COLOURLESS = re.compile(r"(\d+-bit )?grayscale → RGB|black-and-white → RGB")
+#: At most this many images' notes are said one line each by ``domain`` and ``relate``; more, a line per kind.
+NOTE_LINES = 5
+#: Files named per kind when notes are summed up (and then "and N more").
+NOTE_EXAMPLES = 3
+
+
+def _note_kind(text: str) -> str:
+    """The kind of one note (:data:`_NOTE_KINDS`); an unknown one is its own text up to its details."""
+    for pattern, kind in _NOTE_KINDS:
+        if m := pattern.match(text):
+            return m.expand(kind)
+    return re.split(r" \(|: ", text, maxsplit=1)[0]
+
+
+def _colourless_caveat(model: Any, n: int, total: int, kinds: list[str]) -> str:
+    """What the posteriors of ``n`` of ``total`` images without colour (grayscale, black-and-white) are worth."""
+    return (
+        f"{n} of {count(total, 'image')} {'has' if n == 1 else 'have'} no colour ({', '.join(kinds)}: the gray level "
+        f"copied to red, green and blue): {model.name} learned from colour renders, and the calibration measured in "
+        "the pipeline does not cover images without colour, whose posteriors can be far off and confident (a "
+        "grayscale copy of a clear-noon render of cloudiness 5 % got cloudiness 98 % [97, 100] from the default "
+        "profile's cues-50000); use colour images"
+    )
+
+
+@dataclass
+class ReadLog:
+    """What reading a command's images said: the images skipped (path, reason), each image's notes by kind
+    (:data:`_NOTE_KINDS`), the sizes of the images taken, and the caveats said once per command (``said``). Shared by
+    the :func:`read_batches` calls of one command (e.g. relate's folders); :meth:`finish` sums it up on stderr,
+    :meth:`to_json` for ``--json``."""
+
+    command: str
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+    notes: dict[str, list[str]] = field(default_factory=dict)
+    image_notes: dict[str, str] = field(default_factory=dict)
+    sizes: set[tuple[int, int]] = field(default_factory=set)
+    converted: bool = False
+    taken: int = 0
+    said: set[str] = field(default_factory=set)
+    caveats: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    def skip(self, path: Path, reason: str) -> None:
+        self.skipped.append((str(path), reason))
+
+    def take(self, path: Path, pieces: list[str]) -> None:
+        self.taken += 1
+        if pieces:
+            self.image_notes[str(path)] = "; ".join(pieces)
+        for kind in dict.fromkeys(map(_note_kind, pieces)):
+            self.notes.setdefault(kind, []).append(str(path))
+
+    def finish(self, model: Any, each: bool) -> None:
+        """The caveats of the images taken (once per command), said on stderr after the images' notes when ``each``
+        (``domain`` and ``relate``, whose output names no image): one line per image for up to :data:`NOTE_LINES`
+        images, else a count per kind and the first files. The resize caveat names every size outside the model's
+        (:func:`_resize_caveat`); images without colour get :func:`_colourless_caveat`, naming how many."""
+        if "finished" in self.said:
+            return
+        self.said.add("finished")
+        if each and self.image_notes:
+            lines = [f"{path}: {note}" for path, note in self.image_notes.items()]
+            if len(lines) > NOTE_LINES:
+                lines = [
+                    f"{kind}: {count(len(files), 'image')} ("
+                    + ", ".join(files[:NOTE_EXAMPLES])
+                    + (f" and {len(files) - NOTE_EXAMPLES} more" if len(files) > NOTE_EXAMPLES else "")
+                    + ")"
+                    for kind, files in self.notes.items()
+                ]
+            for line in lines:
+                print(f"pidc {self.command}: note: {line}", file=sys.stderr)
+        if self.sizes and (caveat := _resize_caveat(model, self.sizes, self.converted)):
+            files = list(
+                dict.fromkeys(f for k in ("resized", "taken as already shrunk") for f in self.notes.get(k, []))
+            )
+            self.caveats["resized"] = {"count": len(files), "images": files, "text": caveat}
+        kinds = [kind for kind in self.notes if COLOURLESS.fullmatch(kind)]
+        if kinds:
+            files = list(dict.fromkeys(f for kind in kinds for f in self.notes[kind]))
+            caveat = _colourless_caveat(model, len(files), self.taken, kinds)
+            self.caveats["colourless"] = {"count": len(files), "images": files, "text": caveat}
+        for item in self.caveats.values():
+            print(f"pidc {self.command}: note: {item['text']}", file=sys.stderr)
+
+    def to_json(self) -> dict[str, Any]:
+        """``skipped`` (how many), ``skipped_images`` (path and reason each), ``notes`` (per kind: how many and which
+        images) and ``caveats`` (per caveat: how many images, which, and its text)."""
+        return {
+            "skipped": len(self.skipped),
+            "skipped_images": [{"image": path, "reason": reason} for path, reason in self.skipped],
+            "notes": {kind: {"count": len(files), "images": files} for kind, files in self.notes.items()},
+            "caveats": [{"kind": kind, **item} for kind, item in self.caveats.items()],
+        }
+
+
+def _outside(model: Any, sizes: set[tuple[int, int]], converted: bool) -> list[tuple[int, int]]:
+    """The sizes (H, W) among ``sizes`` the model did not learn from (the card's ``training_renders``); for a card
+    that does not name them (exported before pidc recorded it), those its backbone converts (another size than its
+    input, or all when it does not say its input size and ``converted``)."""
+    if model.training_renders:
+        return sorted(s for s in sizes if not model.learned_size(s))
+    size = getattr(model.backbone, "input_size", None)
+    if size:
+        return sorted(s for s in sizes if tuple(s) != tuple(size))
+    return sorted(sizes) if converted else []
+
+
 def _resize_caveat(model: Any, sizes: set[tuple[int, int]], converted: bool) -> str | None:
     """What a posterior of a resized image is worth, for images of ``sizes`` (H, W): a note when a size is not one the
-    model learned from (the card's ``training_renders``), or, for a card that does not name them (exported before pidc
-    recorded it), when the backbone ``converted`` the images to its input; for a model of resized renders
-    (``simulator.render_sizes``), also when images come at its input size, which it takes as frames already shrunk;
-    None otherwise."""
+    model learned from (:func:`_outside`); for a model of resized renders (``simulator.render_sizes``), also when
+    images come at its input size, which it takes as frames already shrunk; None otherwise."""
     renders = model.training_renders
-    other = sorted(s for s in sizes if not model.learned_size(s)) if renders else (sorted(sizes) if converted else [])
+    other = _outside(model, sizes, converted)
     shown = ", ".join(f"{w}×{h}" for h, w in other[:3]) + (" …" if len(other) > 3 else "")
     if renders is not None and renders[2] is not None:  # a model of resized renders
         notes = [f"images of {shown} are outside them"] if other else []
@@ -202,6 +382,26 @@ def _resize_caveat(model: Any, sizes: set[tuple[int, int]], converted: bool) -> 
         "the pipeline does not cover them: the simulator's own renders made larger and resized gave overconfident "
         'posteriors (BENCHMARKS.md, "Images of another resolution")'
     )
+
+
+def _size_notes(model: Any, sizes: set[tuple[int, int]], converted: bool) -> dict[tuple[int, int], str]:
+    """Each image's own part of :func:`_resize_caveat`, by size (H, W): ``resized: …`` for a size the model did not
+    learn from, ``taken as a frame already shrunk …`` for the input size of a model of resized renders."""
+    renders = model.training_renders
+    learned = model.learned_from
+    out: dict[tuple[int, int], str] = {}
+    for h, w in _outside(model, sizes, converted):
+        out[(h, w)] = (
+            f"resized: {w}×{h} is not a size {model.name} learned from ({learned}): outside the calibration measured "
+            "in the pipeline"
+            if learned
+            else f"resized: {w}×{h} area-resized to the backbone's input; {model.name}'s card does not name the "
+            "size it learned from (re-export it)"
+        )
+    if renders is not None and renders[2] is not None and renders[:2] in sizes:
+        h, w = renders[:2]
+        out[(h, w)] = f"taken as a frame already shrunk to {w}×{h}, not as the renderer's own render of that size"
+    return out
 
 
 #: The backbone's one-time size note names sizes as H×W; the CLI's notes name them W×H, as image viewers and
@@ -246,25 +446,19 @@ def _model_inputs(model: Any, images: list[np.ndarray]) -> tuple[np.ndarray | No
 
 
 def _inputs(
-    model: Any, images: list[np.ndarray], bar: Any, command: str, said: set[str]
-) -> tuple[np.ndarray | None, dict[int, str]]:
-    """uint8 images of any sizes → the model's inputs ``x (n, …)`` of those its backbone takes, in order, and the
-    reasons of those it refuses, by index (:func:`_model_inputs`).
+    model: Any, images: list[np.ndarray], bar: Any, command: str
+) -> tuple[np.ndarray | None, dict[int, str], bool]:
+    """uint8 images of any sizes → the model's inputs ``x (n, …)`` of those its backbone takes, in order, the
+    reasons of those it refuses, by index (:func:`_model_inputs`), and whether the backbone said it converts them.
 
-    The backbone's one-time "converting images" warning becomes a ``note:`` line on stderr (sizes as width×height),
-    and so does, once per command (``said``), the caveat of images not of the model's training size
-    (:func:`_resize_caveat`).
+    The backbone's one-time "converting images" warning becomes a ``note:`` line on stderr (sizes as width×height).
     """
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", UserWarning)
         out, refused = _model_inputs(model, images)
     for message in dict.fromkeys(str(w.message) for w in caught):
         say(bar, f"pidc {command}: note: {_width_first(message)}", err=True)
-    sizes = {im.shape[:2] for i, im in enumerate(images) if i not in refused}
-    if sizes and "resized" not in said and (caveat := _resize_caveat(model, sizes, bool(caught))):
-        said.add("resized")
-        say(bar, f"pidc {command}: note: {caveat}", err=True)
-    return out, refused
+    return out, refused, bool(caught)
 
 
 def _squash_note(model: Any, image: np.ndarray) -> str | None:
@@ -302,52 +496,80 @@ def _read_one(path: Path, bar: Any, command: str) -> tuple[np.ndarray, str | Non
     return out
 
 
+def _reason(path: Path, message: str) -> str:
+    """An :class:`~components.core.images.ImageError`'s message without the path it begins with."""
+    return message[len(f"{path}: ") :] if message.startswith(f"{path}: ") else message
+
+
+def _colour_note(model: Any) -> str:
+    return f"no colour: outside the calibration ({model.name} learned from colour renders)"
+
+
 def read_batches(
-    model: Any, paths: list[Path], command: str, desc: str, said: set[str] | None = None
+    model: Any, paths: list[Path], command: str, desc: str, log: ReadLog | None = None
 ) -> Iterator[tuple[Read, Any]]:
     """Read ``paths`` in batches of :data:`READ_BATCH`: yields the readable ones' inputs (and the progress bar).
 
     Bad files (unreadable, not a regular file, or of a size the model's backbone refuses) are reported on stderr
-    (``pidc <command>: skipped <path>: <reason>``) and left out. Notes said once per command are recorded in ``said``
-    (shared by the calls of one command; a new set when None).
+    (``pidc <command>: skipped <path>: <reason>``) and left out. Each image's notes (the reader's conversions, a
+    squash, a size the model did not learn, no colour) are in :attr:`Read.notes`; the skips, the notes and the sizes
+    are recorded in ``log`` (shared by the calls of one command; a new one when None), which
+    :meth:`ReadLog.finish` sums up.
     """
     from components.core.images import ImageError
 
-    said = set() if said is None else said
+    log = ReadLog(command) if log is None else log
 
     with progress(len(paths), desc) as bar:
         for start in range(0, len(paths), READ_BATCH):
             good: list[Path] = []
-            notes: list[str | None] = []
+            notes: list[list[str]] = []
             images: list[np.ndarray] = []
             for path in paths[start : start + READ_BATCH]:
                 try:
                     image, note = _read_one(path, bar, command)
                 except ImageError as e:
                     say(bar, f"pidc {command}: skipped {e}", err=True)
+                    log.skip(path, _reason(path, str(e)))
                 else:
-                    squash = _squash_note(model, image)
+                    pieces = note.split("; ") if note else []
+                    if any(COLOURLESS.fullmatch(_note_kind(p)) for p in pieces):
+                        pieces.append(_colour_note(model))
+                    if squash := _squash_note(model, image):
+                        pieces.append(squash)
                     good.append(path)
-                    notes.append("; ".join(n for n in (note, squash) if n) or None)
+                    notes.append(pieces)
                     images.append(image)
                 bar.update(1)
             if not good:
                 continue
-            x, refused = _inputs(model, images, bar, command, said)
+            x, refused, converted = _inputs(model, images, bar, command)
             for i, reason in refused.items():
                 say(bar, f"pidc {command}: skipped {good[i]}: {reason}", err=True)
+                log.skip(good[i], reason)
             if x is not None:
                 keep = [i for i in range(len(good)) if i not in refused]
-                yield Read([good[i] for i in keep], [notes[i] for i in keep], x), bar
+                sizes = {images[i].shape[:2] for i in keep}
+                by_size = _size_notes(model, sizes, converted)
+                for i in keep:
+                    if size_note := by_size.get(images[i].shape[:2]):
+                        notes[i].append(size_note)
+                    log.take(good[i], notes[i])
+                log.sizes |= sizes
+                log.converted |= converted
+                yield Read([good[i] for i in keep], ["; ".join(notes[i]) or None for i in keep], x), bar
 
 
-def read_all(
-    model: Any, paths: list[Path], command: str, desc: str, folder: Path, said: set[str] | None = None
-) -> Read:
+def none_read(n: int, whose: str = "the") -> str:
+    """``none of the 3 images could be read``; for one image ``the only image could not be read``."""
+    return f"{whose} only image could not be read" if n == 1 else f"none of {whose} {n} images could be read"
+
+
+def read_all(model: Any, paths: list[Path], command: str, desc: str, folder: Path, log: ReadLog | None = None) -> Read:
     """All readable images' inputs at once (the bag of a domain); CLIError naming ``folder`` when none is readable."""
-    parts = [read for read, _ in read_batches(model, paths, command, desc, said)]
+    parts = [read for read, _ in read_batches(model, paths, command, desc, log)]
     if not parts:
-        raise CLIError(f"{folder}: none of its {count(len(paths), 'image')} could be read")
+        raise CLIError(f"{folder}: {none_read(len(paths), 'its')}")
     return Read(
         [p for r in parts for p in r.paths], [n for r in parts for n in r.notes], np.concatenate([r.x for r in parts])
     )
@@ -358,15 +580,33 @@ def count(n: int, word: str) -> str:
     return f"{n} {word}{'' if n == 1 else 's'}"
 
 
-def check_figure_path(path: Path | None, option: str = "--corner") -> None:
-    """A figure file name whose type matplotlib writes (PNG, PDF, SVG, …), else a one-line error naming ``option``."""
-    if path is None:
-        return
+#: Figure types matplotlib writes that pidc does not offer: PGF is LaTeX source that matplotlib typesets with a LaTeX
+#: engine (xelatex) to measure the text, which fails, after all the work, where none is installed.
+_FIGURE_TYPES_LEFT_OUT = frozenset({"pgf"})
+
+
+def figure_suffixes() -> list[str]:
+    """The figure file suffixes the commands write (matplotlib's Agg types but :data:`_FIGURE_TYPES_LEFT_OUT`)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    fmt = path.suffix.lstrip(".").lower()
-    if fmt not in FigureCanvasAgg.get_supported_filetypes():
-        raise CLIError(f"{option} {path}: unknown image type {path.suffix!r}; use e.g. a .png file")
+    return [f".{t}" for t in FigureCanvasAgg.get_supported_filetypes() if t not in _FIGURE_TYPES_LEFT_OUT]
+
+
+def check_figure_path(path: Path | None, option: str = "--corner") -> None:
+    """A figure file name whose type pidc writes (:func:`figure_suffixes`: PNG, PDF, SVG, …), else a one-line error
+    naming ``option`` and the suffixes it takes."""
+    if path is None:
+        return
+    suffixes = figure_suffixes()
+    if path.suffix.lower() in suffixes:
+        return
+    known = ", ".join(suffixes)
+    if path.suffix.lstrip(".").lower() in _FIGURE_TYPES_LEFT_OUT:
+        raise CLIError(
+            f"{option} {path}: {path.suffix} (PGF, LaTeX source) needs a LaTeX engine, which pidc does not use; "
+            f"use one of {known}"
+        )
+    raise CLIError(f"{option} {path}: unknown image type {path.suffix!r}; use one of {known}")
 
 
 def save_corner(draws: np.ndarray, box: Any, title: str, path: Path) -> None:
@@ -409,3 +649,25 @@ def check_folder(path: Path, command: str) -> Path:
     if not path.is_dir():
         raise CLIError(f"{path}: not a folder (pidc {command} reads the images of a folder)")
     return path
+
+
+def folder_name(path: Path) -> str:
+    """The name of the folder ``path``, also when it is given as ``.`` or ``..`` (the resolved folder's name; the
+    path itself for the root)."""
+    if path.name not in ("", ".", ".."):
+        return path.name
+    resolved = path.resolve()
+    return resolved.name or str(resolved)
+
+
+def check_inputs(paths: Sequence[str | Path]) -> None:
+    """A :class:`CLIError` naming the first of ``paths`` (files or folders given on the command line) that does not
+    exist, before any work (a broken link said as such)."""
+    for given in paths:
+        path = Path(given)
+        if path.exists():
+            continue
+        if path.is_symlink():
+            raise CLIError(f"{given}: a broken link (its target {path.readlink()} does not exist)")
+        what = "folder" if str(given).endswith(("/", "\\")) else "file or folder"
+        raise CLIError(f"{given}: no such {what}")

@@ -20,11 +20,13 @@ import numpy as np
 from components.cli.errors import CLIError
 from components.cli.outputs import check_not_input, check_outputs
 from components.cli.reading import (
+    ReadLog,
     check_figure_path,
     check_folder,
     check_json_path,
     check_seed,
     count,
+    folder_name,
     list_paths,
     load_model,
     read_all,
@@ -72,7 +74,7 @@ def _print_differences(
         f"where the target differs from the fitted mixture Σ λ̂ₖ sourceₖ (marginals of {draws_per_image} "
         "posterior draws an image):\n"
         "  medians and W₁ in the parameter's unit; in-ODD: the W₁ that in-ODD targets of "
-        f"{held} images made from the sources\n"
+        f"{count(held, 'image')} made from the sources\n"
         f"  (the calibration targets) exceed with probability {alpha:g}"
         + ("; *: beyond it, what the alarm is about" if outside else "")
     )
@@ -215,12 +217,14 @@ def cmd_relate(args: argparse.Namespace) -> int:
     check_not_input(outputs, [p for paths in listed for p in paths])
     check_outputs(outputs)
     model = load_model(args)
-    said: set[str] = set()  # notes said once for the whole command
+    log = ReadLog("relate")  # the skips, notes and caveats of all folders, said once for the whole command
     bags = [
-        read_all(model, paths, "relate", f"read {f.name}", f, said) for f, paths in zip(folders, listed, strict=True)
+        read_all(model, paths, "relate", f"read {folder_name(f)}", f, log)
+        for f, paths in zip(folders, listed, strict=True)
     ]
+    log.finish(model, each=True)
     target, *sources = [Domain(model.posterior, b.x) for b in bags]
-    names = [f.name for f in folders[1:]]
+    names = [folder_name(f) for f in folders[1:]]
     if len(set(names)) < len(names):
         names = [str(f) for f in folders[1:]]
     _check_calibration_sources(names, sources)
@@ -300,7 +304,7 @@ def cmd_relate(args: argparse.Namespace) -> int:
     print(f"verdict: {verdict} (relative gap {'>' if outside else '≤'} threshold; false-alarm rate {alpha:g})")
     if args.json is not None:
         report = {
-            "target": {"folder": str(folders[0]), "images": len(target)},
+            "target": {"name": folder_name(folders[0]), "folder": str(folders[0]), "images": len(target)},
             "sources": [
                 {"name": n, "folder": str(f), "images": len(src), "weight": float(lam)}
                 for n, f, src, lam in zip(names, folders[1:], sources, rel.weights, strict=True)
@@ -319,6 +323,7 @@ def cmd_relate(args: argparse.Namespace) -> int:
             "calibration_target_images": held,
             "false_alarm_rate": alpha,
             "outside": bool(outside),
+            **log.to_json(),
             "parameters": {
                 diff.name: {
                     **diff.to_dict(),
@@ -338,7 +343,7 @@ def cmd_relate(args: argparse.Namespace) -> int:
             for q, level in zip(differences, levels, strict=True)
         ]
         title = (
-            f"{folders[0].name} against {', '.join(names)} ({model.name}): {verdict} "
+            f"{folder_name(folders[0])} against {', '.join(names)} ({model.name}): {verdict} "
             f"(relative gap {rel.relative_gap:.3g}, threshold {detector.threshold:.3g})"
         )
         save_figure(relation_marginals(pooled[0], pooled[1:], rel.weights, names, box, notes, title), args.plot)

@@ -383,7 +383,8 @@ def _signature(card: dict[str, Any]) -> ModelSignature:
 
 def register_model(folder: Path, params: Params, base: Path, model_id: str) -> dict[str, str]:
     """Log ``folder``'s density graph (ONNX flavor; the card and the other graphs as extra files) in the model's MLflow
-    run and register it as ``<prefix><model id>``; returns ``{"name", "version", "run_id"}``."""
+    run and register it as a new version of ``export.registered_model`` (or reuse the version of the same card's SHA-256);
+    returns ``{"name", "version", "run_id"}``."""
     import onnx
     import onnxruntime
 

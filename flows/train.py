@@ -2,7 +2,8 @@
 
 ``python -m flows.train [--model ID ...] [--params params.yaml]``. Each model (``<backbone>-<size>`` of the grid,
 ``<backbone>-<size>-<variant>`` of ``train.variants``) trains on the first ``size`` images of the train split (cached
-backbone outputs), stops early on the validation loss, resumes from its checkpoint after a kill, and is scored on the
+backbone outputs), keeps its best validation epoch (early stopping only with ``train.patience``), resumes from its
+checkpoint after a kill, and is scored on the
 test split (NLL and information gain over the prior). ``train.runner.workers`` models train at a time, the largest
 first, with ``cores // workers`` torch threads each: a training step of these small flows is no faster on two threads
 than on one, so one model per core halves the stage (BENCHMARKS.md, "Training the grid in parallel"). A model whose

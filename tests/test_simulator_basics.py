@@ -192,3 +192,70 @@ def test_the_renderer_refuses_numpys_dispatched_kernels():
         assert out.returncode != 0
         assert "import components (or any pidc module) before numpy" in out.stderr, out.stderr
         assert "NPY_DISABLE_CPU_FEATURES=X86_V3" in out.stderr
+
+
+def test_the_renderer_turns_ipp_off_in_every_thread_that_renders():
+    """OpenCV keeps Intel's IPP switch per thread and a new thread starts with IPP on; IPP's kernels differ by CPU.
+    A render in a fresh thread (as a thread task runner makes them) must run with IPP off, and so must the
+    backbones' size conversion."""
+    import threading
+
+    import cv2
+
+    from components.features.backbones.imageops import resize_area
+
+    seen: dict[str, object] = {}
+
+    def render() -> None:
+        seen["before"] = cv2.ipp.useIPP()
+        try:
+            weather = {"cloudiness": 40.0, "fog_density": 10.0, "precipitation": 30.0, "sun_altitude_angle": 30.0}
+            weather |= {"wind_intensity": 20.0, "precipitation_deposits": 50.0, "sun_azimuth_angle": 90.0}
+            ProceduralSimulator(64, 64).render(weather, 3)
+        except Exception as e:  # noqa: BLE001  (reported by the assertion below)
+            seen["error"] = repr(e)
+        seen["render"] = cv2.ipp.useIPP()
+
+    def resize() -> None:
+        resize_area(np.zeros((1, 32, 32, 3), np.uint8), (16, 16))
+        seen["resize"] = cv2.ipp.useIPP()
+
+    for target in (render, resize):
+        t = threading.Thread(target=target)
+        t.start()
+        t.join()
+    if cv2.ipp.getIppVersion() != "disabled" and seen["before"] is not True:
+        pytest.fail(f"a new thread should start with IPP on in this OpenCV, so the test would test nothing: {seen}")
+    assert "error" not in seen and seen["render"] is False and seen["resize"] is False, seen
+
+
+def test_the_renders_do_not_depend_on_opencvs_simd_kernels():
+    """With IPP off the images are the same whichever of OpenCV's own kernels run: renders (each in a fresh
+    process, scenes built and rendered) with every dispatched feature this CPU has turned off
+    (``OPENCV_CPU_DISABLE``, down to OpenCV's SSE3 baseline) equal the default process's to the byte. OpenCV names
+    a feature it turned off with a ``?`` in its feature line; the test checks that the switch took effect."""
+    probe = (
+        "import components, hashlib, cv2, numpy as np; "
+        "from components.simulate.procedural import ProceduralSimulator; "
+        "s = ProceduralSimulator(96, 96); "
+        "ims = [s.render({'cloudiness': c, 'fog_density': f, 'precipitation': p, 'sun_altitude_angle': a, "
+        "'precipitation_deposits': d, 'wind_intensity': 30.0, 'sun_azimuth_angle': 40.0 * k}, k) for k, (c, f, p, a, d) in enumerate("
+        "[(10, 5, 80, 30, 60), (70, 40, 20, -20, 90), (30, 0, 50, 60, 40), (90, 70, 0, 5, 0), (0, 20, 95, 80, 100)])]; "
+        "print(cv2.getCPUFeaturesLine()); print(hashlib.sha256(np.stack(ims).tobytes()).hexdigest())"
+    )
+    root = Path(__file__).resolve().parents[1]
+
+    def run(env_extra: dict[str, str]) -> tuple[str, str]:
+        env = {k: v for k, v in os.environ.items() if not k.startswith("OPENCV_")} | env_extra
+        out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env, cwd=root)
+        assert out.returncode == 0, out.stderr
+        features, digest = out.stdout.strip().rsplit("\n", 1)
+        return features, digest
+
+    features, default = run({})
+    dispatched = [f.lstrip("*") for f in features.split() if f.startswith("*") and not f.endswith("?")]
+    if not dispatched:
+        pytest.fail(f"OpenCV dispatches no kernel above its baseline on this CPU ({features!r}): nothing to compare")
+    features_off, limited = run({"OPENCV_CPU_DISABLE": ",".join(dispatched)})
+    assert all(f"*{f}?" in features_off.split() for f in dispatched), features_off
+    assert limited == default, (features, features_off)

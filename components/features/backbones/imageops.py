@@ -14,6 +14,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from components.core.opencv import ipp_off
+
 __all__ = ["MIN_SIDE", "check_images", "resize_area", "to_unit_chw"]
 
 #: the fewest pixels of an image's height and width that every backbone takes (:func:`check_images`)
@@ -61,6 +63,7 @@ def resize_area(images: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     if images.shape[1:3] == (h, w):
         return images
     out = np.empty((images.shape[0], h, w, 3), dtype=np.uint8)
+    ipp_off()  # the same pixels on every CPU (components/core/opencv.py)
     for i, image in enumerate(images):
         out[i] = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
     return out

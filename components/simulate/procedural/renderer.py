@@ -35,6 +35,7 @@ import numpy as np
 
 from components import NUMPY_DISPATCH_OFF, numpy_kernels
 from components.core.images import RENDER_SIDES
+from components.core.opencv import ipp_off
 from components.core.weather import complete_weather
 
 from .calibration import CALIBRATION, Calibration, calibration_hash
@@ -47,7 +48,9 @@ from .sky import cloud_coverage, henyey_greenstein, sky_radiance, sun_sky
 __all__ = ["ProceduralSimulator", "ALGORITHM_VERSION"]
 
 #: bump when the image-formation algorithm changes (the calibration hash covers the constants)
-ALGORITHM_VERSION = 2  # 2: the rain pool and a streak's opacity per solid angle independent of the image size
+#: 2: the rain pool and a streak's opacity per solid angle independent of the image size;
+#: 3: OpenCV's calls without Intel's IPP, whose kernels differ by CPU (components/core/opencv.py)
+ALGORITHM_VERSION = 3
 
 cv2.setNumThreads(1)
 
@@ -107,6 +110,7 @@ class ProceduralSimulator:
     def scene(self, scene_seed: int) -> Scene:
         """The cached weather-independent scene (geometry, masks, fields) of ``scene_seed``."""
         seed = _check_seed(scene_seed)
+        ipp_off()  # in the calling thread: the same pixels on every CPU (components/core/opencv.py)
         with self._lock:
             sc = self._cache.get(seed)
             if sc is not None:
@@ -136,6 +140,7 @@ class ProceduralSimulator:
 
     def _radiance(self, w: dict[str, float], sc: Scene) -> np.ndarray:
         """Channel-planar linear radiance (3, N) float32 of scene ``sc`` under the complete weather ``w``."""
+        ipp_off()  # in the calling thread: the same pixels on every CPU (components/core/opencv.py)
         cal = self.calibration
         cloud, fog, precip = w["cloudiness"], w["fog_density"], w["precipitation"]
         alt, wind, deposits = w["sun_altitude_angle"], w["wind_intensity"], w["precipitation_deposits"]

@@ -274,7 +274,7 @@ def _colourless_caveat(model: Any, n: int, total: int, kinds: list[str]) -> str:
 @dataclass
 class ReadLog:
     """What reading a command's images said: the images skipped (path, reason), each image's notes by kind
-    (:data:`_NOTE_KINDS`), the sizes of the images taken, and the caveats said once per command (``said``). Shared by
+    (:data:`_NOTE_KINDS`), the sizes of the images taken, and the caveats said once per command (``finished``). Shared by
     the :func:`read_batches` calls of one command (e.g. relate's folders); :meth:`finish` sums it up on stderr,
     :meth:`to_json` for ``--json``."""
 
@@ -285,7 +285,7 @@ class ReadLog:
     sizes: set[tuple[int, int]] = field(default_factory=set)
     converted: bool = False
     taken: int = 0
-    said: set[str] = field(default_factory=set)
+    finished: bool = False
     caveats: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def skip(self, path: Path, reason: str) -> None:
@@ -303,9 +303,9 @@ class ReadLog:
         (``domain`` and ``relate``, whose output names no image): one line per image for up to :data:`NOTE_LINES`
         images, else a count per kind and the first files. The resize caveat names every size outside the model's
         (:func:`_resize_caveat`); images without colour get :func:`_colourless_caveat`, naming how many."""
-        if "finished" in self.said:
+        if self.finished:
             return
-        self.said.add("finished")
+        self.finished = True
         if each and self.image_notes:
             lines = [f"{path}: {note}" for path, note in self.image_notes.items()]
             if len(lines) > NOTE_LINES:

@@ -12,9 +12,9 @@ and standard deviation over the fresh ones, and writes them as JSON to ``--out``
 
     python benchmarks/bench_splits.py --model models/cues-50000/model.pt --splits 4
 
-The fresh splits' features are kept in ``--cache`` (keyed by seed, size and the backbone's fingerprint), so a second
-model of the same backbone costs only its draws. Models of a frozen backbone only (``cues``, ``tiny``, a pretrained
-one): a model that trains its backbone (``cnn``) is refused by name.
+The fresh splits' features are kept in ``--cache`` (keyed by seed, size, the renderer's version and the backbone's
+fingerprint), so a second model of the same backbone costs only its draws. Models of a frozen backbone only (``cues``,
+``tiny``, a pretrained one): a model that trains its backbone (``cnn``) is refused by name.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ import components  # noqa: E402,F401  first, before numpy: it pins numpy's SIMD 
 
 # isort: on
 import argparse  # noqa: E402
+import hashlib  # noqa: E402
 import json  # noqa: E402
 import time  # noqa: E402
 
@@ -45,6 +46,7 @@ from components.features import cache  # noqa: E402
 from components.features.backbones import get_backbone  # noqa: E402
 from components.posterior.store import load_npe  # noqa: E402
 from components.simulate import dataset  # noqa: E402
+from components.simulate.base import make_simulator  # noqa: E402
 from components.simulate.in_memory import render_split  # noqa: E402
 
 #: the figures summarized over the fresh splits: scalars, and per-parameter blocks
@@ -54,9 +56,11 @@ BLOCKS = ("day_median_abs_error", "night_coverage68", "day_coverage68")
 
 def fresh_features(params, backbone, seed: int, size: int, workers: int, folder: Path | None) -> tuple[np.ndarray, ...]:
     """Features ``(size, dim)`` float32 and θ ``(size, 6)`` of the test split's plan under root seed ``seed``, read
-    from ``folder`` when it holds them for this backbone's fingerprint, else rendered (``workers`` processes) and
-    kept there."""
-    path = folder / f"{backbone.name}-{backbone.fingerprint()[:12]}-{seed}-{size}.npz" if folder else None
+    from ``folder`` when it holds them for this renderer (its version: algorithm, calibration, render sizes) and this
+    backbone's fingerprint, else rendered (``workers`` processes) and kept there."""
+    renderer = hashlib.sha256(make_simulator(params.simulator).version.encode()).hexdigest()[:12]
+    name = f"{backbone.name}-{backbone.fingerprint()[:12]}-{renderer}-{seed}-{size}.npz"
+    path = folder / name if folder else None
     if path is not None and path.is_file():
         with np.load(path) as z:
             return z["x"], z["theta"]

@@ -192,6 +192,27 @@ def test_splits_fresh_split_is_another_plan_the_same_every_time(tmp_path: Path) 
     np.testing.assert_array_equal(x2, x)
 
 
+def test_splits_cache_is_keyed_by_the_renderer(tmp_path: Path) -> None:
+    """Features of one seed and size rendered by another renderer (here camera-like renders, ``render_sizes``; a new
+    algorithm version or calibration alike) are rendered anew, not read from the cache of the first."""
+    import yaml
+
+    from tests.conftest import write_params
+
+    section = yaml.safe_load((ROOT / "params.yaml").read_text())["simulator"] | {"height": 32, "width": 32}
+    native = load_params(write_params(tmp_path / "native", simulator=section))
+    camera = load_params(write_params(tmp_path / "camera", simulator=section | {"render_sizes": [40, 64]}))
+    backbone = get_backbone("tiny").eval()
+    cache = tmp_path / "cache"
+    x, _ = fresh_features(native, backbone, native.seed + 1, 8, 1, cache)
+    y, _ = fresh_features(camera, backbone, camera.seed + 1, 8, 1, cache)
+    assert len(list(cache.glob("tiny-*.npz"))) == 2
+    np.testing.assert_array_equal(
+        y, backbone.extract(render_split(camera, "test", 8, workers=1, seed=camera.seed + 1)[0])
+    )
+    assert not np.array_equal(x, y)
+
+
 def test_splits_summary_is_the_mean_and_spread_over_splits() -> None:
     def row(v: float) -> dict:
         block = dict.fromkeys(PREDICTED, v)

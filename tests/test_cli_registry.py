@@ -1094,8 +1094,8 @@ def gray_copies(source: Path, folder: Path, n: int) -> list[Path]:
 
 
 COLOURLESS = re.compile(
-    r"^pidc (?P<command>\w+): note: (?P<n>\d+) of (?P<total>\d+) images? (has|have) no colour \(grayscale → RGB: the "
-    r"gray level copied to red, green and blue\): cues-tiny learned from colour renders, and the calibration measured "
+    r"^pidc (?P<command>\w+): note: (?P<n>\d+) of (?P<total>\d+) images? (has|have) no colour \((?P<kinds>[^:]+): "
+    r"red, green and blue equal in every pixel\): cues-tiny learned from colour renders, and the calibration measured "
     r"in the pipeline does not cover images without colour"
 )
 
@@ -1150,6 +1150,43 @@ def test_domain_and_relate_say_the_read_notes_and_the_colourless_caveat(world, c
         {"image": str(folder / "broken.png"), "reason": "empty file (0 bytes)"}
     ]
     assert [c["kind"] for c in report["caveats"]] == ["colourless"]
+
+
+def test_gray_pictures_stored_as_colour_get_the_colour_caveat(world, capsys, tmp_path):
+    """A grayscale picture saved as RGB (PNG and JPEG: red = green = blue in every pixel) is noted and gets the colour
+    caveat like a grayscale file; a colour render, or one whose pixels are gray but for one, does not."""
+    folder = tmp_path / "g"
+    folder.mkdir()
+    with Image.open(world["clear"] / "003.png") as im:
+        colour = np.asarray(im.convert("RGB"))
+        gray = np.asarray(im.convert("L"))
+    rgb = np.repeat(gray[:, :, None], 3, axis=2)
+    Image.fromarray(rgb).save(folder / "a.png")
+    Image.fromarray(rgb).save(folder / "b.jpg", quality=90)
+    almost = rgb.copy()
+    almost[5, 7, 2] ^= 1  # one pixel one level off gray: colour in the file, however little
+    Image.fromarray(almost).save(folder / "c.png")
+    Image.fromarray(colour).save(folder / "d.png")
+    code, out, err = run(
+        capsys, "characterize", folder, "--registry", world["registry"], "--samples", 100, "--json", tmp_path / "c.json"
+    )
+    assert code == 0 and len(parse_blocks(out)) == 4, err
+    notes = {Path(item["image"]).name: item["note"] for item in json.loads((tmp_path / "c.json").read_text())["images"]}
+    expected = (
+        "gray in every pixel (red = green = blue: a grayscale picture stored as colour); no colour: outside the "
+        "calibration (cues-tiny learned from colour renders)"
+    )
+    assert notes == {"a.png": expected, "b.jpg": expected, "c.png": None, "d.png": None}
+    caveats = [m for line in err.splitlines() if (m := COLOURLESS.match(line))]
+    assert [(m["n"], m["total"], m["kinds"]) for m in caveats] == [("2", "4", "gray in every pixel")], err
+
+    # a grayscale file is said once, as grayscale, not also as gray in every pixel
+    Image.fromarray(gray, mode="L").save(folder / "e.png")
+    code, _, err = run(capsys, "domain", folder, "--registry", world["registry"], "--samples", 100)
+    caveats = [m for line in err.splitlines() if (m := COLOURLESS.match(line))]
+    assert code == 0 and [(m["n"], m["total"], m["kinds"]) for m in caveats] == [
+        ("3", "5", "gray in every pixel, grayscale → RGB")
+    ], err
 
 
 def test_characterize_json_holds_each_images_notes_caveats_and_skips(world, capsys, tmp_path):

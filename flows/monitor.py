@@ -8,7 +8,8 @@ from that date (:mod:`components.monitor.draws`), so each day brings new images 
 
 - Task I: ``monitor.images`` new images rendered by the simulator from the date's seed (or the first ones of a folder
   of recorded images with their labels, :mod:`components.monitor.recorded`), ``monitor.samples`` posterior draws each:
-  the calibration error against the band of a perfectly calibrated model on as many images and draws, test NLL,
+  the calibration error against the band of a perfectly calibrated model on as many images and draws (at the level
+  1 − (1 − ``monitor.alarm_level``)/k for k models judged, :func:`components.monitor.checks.model_level`), test NLL,
   information gain, π, coverage;
 - Task III: ``monitor.false_alarm_targets`` in-ODD targets of new seeds — their in-ODD part from new images of the
   sources' weather (simulated, or the recorded images whose labels lie in a source's bag) — related to the pipeline's
@@ -167,7 +168,10 @@ def monitor(
         recorded = read_recorded(paths.resolve(source), params.box, mon.images)
         draw = draws.Draw(recorded.images, recorded.theta, recorded.names)
     n = len(draw)
-    band = task1.calibration_band(n, mon.samples, mon.alarm_level, params.evaluate.band_replicates, params.seed)
+    # each model's band at the level that keeps the run's chance alarm ≤ 1 − alarm_level over all its models
+    level = checks.model_level(mon.alarm_level, len(entries))
+    replicates = checks.band_replicates(params.evaluate.band_replicates, params.evaluate.band_level, level)
+    band = task1.calibration_band(n, mon.samples, level, replicates, params.seed)
     results = [judge_model(e, params, paths, draw, draws.run_seed(params.seed, day, e.model), band) for e in entries]
     judged = {r["model"]: r["folder"] for r in results}
     odd_test, odd_model, odd = _odd(params, paths, day, source, draw, simulator, judged, logger)
@@ -182,6 +186,7 @@ def monitor(
         "images": n,
         "samples": mon.samples,
         "alarm_level": mon.alarm_level,
+        "calibration_level": level,
         "calibration_band": band,
         "models": {
             e.model: {"registered_version": e.version, "aliases": list(e.aliases), "uri": e.uri}
@@ -203,7 +208,7 @@ def monitor(
             curves,
             title=f"Monitoring {day}: expected coverage on {n} {'new simulated' if simulator else 'recorded'} images",
             band=band,
-            band_label=f"{100 * mon.alarm_level:g} % band of a calibrated\nmodel on {n} images",
+            band_label=f"{100 * level:.4g} % band of a calibrated\nmodel on {n} images",
         ),
         out / "coverage.png",
     )
@@ -212,6 +217,7 @@ def monitor(
         values |= tracking.flatten_numbers({alias: report["models"][e.model] for alias in e.aliases}, "task1")
     values |= tracking.flatten_numbers({k: v for k, v in odd.items() if k != "threshold"}, "odd")
     values |= {"alarms": len(alarms), "images": n, "samples": mon.samples, "calibration_band": band}
+    values |= {"calibration_level": level}
     run_name = f"monitor-{day.isoformat()}" + ("" if which == tracking.CHAMPION_ALIAS else f"-{which}")
     tags = {"pidc.models_monitored": which, "pidc.source": source, "pidc.prefect_flow_run": str(flow_run.id or "")}
     run_id = tracking.log_monitoring(
@@ -219,10 +225,11 @@ def monitor(
     )
     for m, v in task1_metrics.items():
         logger.info(
-            "%s: calibration error %.3f (band %.3f on %d images: %s), NLL %.2f, information gain %.2f nats",
+            "%s: calibration error %.3f (band %.3f at %.4g %% on %d images: %s), NLL %.2f, information gain %.2f nats",
             m,
             v["calibration_error"],
             band,
+            100 * level,
             n,
             "within" if v["within_band"] else "OUTSIDE",
             v["test_nll"],

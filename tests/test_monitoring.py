@@ -114,6 +114,51 @@ def test_a_calibrated_posterior_raises_the_calibration_alarm_at_the_nominal_rate
     assert low <= rate <= high, (rate, low, high)
 
 
+def test_a_run_of_many_calibrated_models_raises_a_calibration_alarm_at_most_at_the_nominal_rate():
+    """k = 5 calibrated models judged on the same run's images: the truths θ are shared, each model reads its own
+    observation x = θ + ε (flat prior, exact posterior 𝒩(x, 1): five backbones that see different things). With each
+    band at model_level(level, k) a run raises any calibration alarm with probability ≤ 1 − level; with each at level
+    itself, 1 − level⁵ ≈ 0.23. 300 runs of 60 images, 200 draws each."""
+    runs, k, n, draws_per_image = 300, 5, 60, 200
+    level = checks.model_level(LEVEL, k)
+    assert level == pytest.approx(0.99)
+    replicates = checks.band_replicates(1000, LEVEL, level)
+    assert replicates == 5000
+    bands = {
+        "per model": task1.calibration_band(n, draws_per_image, level, replicates, seed=7),
+        "uncorrected": task1.calibration_band(n, draws_per_image, LEVEL, 1000, seed=7),
+    }
+    rng = seeding.rng(17, "monitoring-test", "family")
+    failed = dict.fromkeys(bands, 0)
+    for _ in range(runs):
+        truth = rng.normal(0.0, 5.0, size=(n, 2))
+        errors = []
+        for _ in range(k):
+            mu = (truth + rng.standard_normal((n, 2)))[:, None]
+            samples = mu + rng.standard_normal((n, draws_per_image, 2))
+            lp = -0.5 * np.sum((samples - mu) ** 2, axis=-1)
+            lp_truth = -0.5 * np.sum((truth - mu[:, 0]) ** 2, axis=-1)
+            errors.append(diagnostics.calibration_error(diagnostics.hpd_credibility(lp, lp_truth), task1.LEVELS))
+        for name, band in bands.items():
+            failed[name] += max(errors) > band
+    # the corrected runs' failures are at most Binomial(runs, 1 − LEVEL); the uncorrected ones' far above it
+    high = stats.binom(runs, 1 - LEVEL).ppf(0.999)
+    assert failed["per model"] <= high, failed
+    assert failed["uncorrected"] > high, failed
+
+
+def test_model_level_and_band_replicates():
+    assert checks.model_level(0.99, 1) == pytest.approx(0.99)
+    assert checks.model_level(0.99, 9) == pytest.approx(1 - 0.01 / 9)
+    assert checks.band_replicates(2000, 0.95, 0.99) == 10000  # 100 replicates above the band, as at 95 %
+    assert checks.band_replicates(2000, 0.95, 0.9) == 2000  # never fewer
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="models must be an integer >= 1"):
+            checks.model_level(0.99, bad)
+    with pytest.raises(ValueError, match=r"level must be in \(0, 1\)"):
+        checks.model_level(1.0, 2)
+
+
 @pytest.mark.parametrize("scale, what", [(0.5, "overconfident"), (2.0, "underconfident")])
 def test_a_miscalibrated_posterior_raises_the_calibration_alarm(scale, what):
     assert _alarm_rate(scale, 40) >= 0.95, what

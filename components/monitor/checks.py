@@ -16,6 +16,12 @@ interval is too narrow and would alarm more often than 1 − level. The alarm fi
 that holds at least ``level`` of that distribution: too many false alarms (in-ODD gaps grew: the decision breaks its
 promise) or too few (they shrank: the threshold no longer sits where it was calibrated).
 
+**Many models in one run.** A run that judges k models (the weekly run: every registered model) checks each against
+its band at the level 1 − (1 − level)/k (:func:`model_level`, Bonferroni: valid whatever the dependence between the
+models' errors on the run's shared images), so that all k calibration checks of healthy models together fire with
+probability ≤ 1 − level, as the one check of a run that judges the champion alone; the band of that level is simulated
+with as many more replicates as keep its tail as well sampled (:func:`band_replicates`).
+
 A run whose checks raise an alarm ends with :class:`MonitoringAlarm` (after its report is written), naming each alarm.
 
 Used by the scheduled monitoring (``flows/monitor.py``).
@@ -23,6 +29,7 @@ Used by the scheduled monitoring (``flows/monitor.py``).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +39,8 @@ from components.domains.sweep import FalseAlarmCheck
 
 __all__ = [
     "MonitoringAlarm",
+    "model_level",
+    "band_replicates",
     "calibration_alarm",
     "false_alarm_interval",
     "CalibratedOdd",
@@ -43,6 +52,24 @@ __all__ = [
 class MonitoringAlarm(RuntimeError):
     """A monitoring run found a model outside its calibration band or an ODD false-alarm count outside its
     interval; the message names every alarm."""
+
+
+def model_level(level: float, models: int) -> float:
+    """The level of each of ``models`` calibration checks of one run such that healthy models raise any of them with
+    probability ≤ 1 − ``level``: 1 − (1 − level)/models (Bonferroni)."""
+    if isinstance(models, bool) or int(models) != models or models < 1:
+        raise ValueError(f"models must be an integer >= 1, got {models!r}")
+    if not 0.0 < float(level) < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level!r}")
+    return 1.0 - (1.0 - float(level)) / int(models)
+
+
+def band_replicates(replicates: int, reference_level: float, level: float) -> int:
+    """Simulations for the band at ``level`` that put as many of them above it as ``replicates`` put above the band at
+    ``reference_level`` (the evaluate stage's, ``evaluate.band_replicates`` at ``evaluate.band_level``): the quantile's
+    Monte Carlo error, relative to its tail 1 − level, stays what it is there. Never fewer than ``replicates``."""
+    tail = replicates * (1.0 - float(reference_level))
+    return max(int(replicates), math.ceil(tail / (1.0 - float(level)) - 1e-6))
 
 
 def calibration_alarm(model: str, metrics: Mapping[str, float]) -> str | None:

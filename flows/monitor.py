@@ -53,9 +53,16 @@ SIMULATOR = "simulator"
 
 @task(name="monitor-model", cache_policy=NO_CACHE)  # holds images and onnxruntime sessions
 def judge_model(
-    entry: tracking.MonitoredModel, params: Params, paths: ProjectPaths, draw: draws.Draw, seed: int, band: float
+    entry: tracking.MonitoredModel,
+    params: Params,
+    paths: ProjectPaths,
+    draw: draws.Draw,
+    seed: int,
+    band: float,
+    level: float,
 ) -> dict:
-    """Task I of one registered version on the run's images (``band``: the calibration band at their number)."""
+    """Task I of one registered version on the run's images (``band``: the calibration band at their number, the
+    ``level`` quantile of a perfectly calibrated model's error)."""
     folder = tracking.download_registered_model(entry.uri, paths.root)
     model = load_registered(folder)
     if model.name != entry.model:
@@ -67,7 +74,7 @@ def judge_model(
     samples = params.monitor.samples
     _, lp, lp_truth = task1.posterior_draws(model.posterior, x, draw.theta, samples, seed)
     metrics, coverage, _ = task1.task1_metrics(lp, lp_truth, params.box.log_volume(), band)
-    metrics |= {"images": len(draw), "samples": samples}
+    metrics |= {"images": len(draw), "samples": samples, "calibration_level": level}
     # images of a size the model did not learn from: resized, outside what the calibration covers
     if model.training_renders is not None:
         metrics["resized_images"] = sum(not model.learned_size(im.shape[:2]) for im in draw.images)
@@ -172,7 +179,9 @@ def monitor(
     level = checks.model_level(mon.alarm_level, len(entries))
     replicates = checks.band_replicates(params.evaluate.band_replicates, params.evaluate.band_level, level)
     band = task1.calibration_band(n, mon.samples, level, replicates, params.seed)
-    results = [judge_model(e, params, paths, draw, draws.run_seed(params.seed, day, e.model), band) for e in entries]
+    results = [
+        judge_model(e, params, paths, draw, draws.run_seed(params.seed, day, e.model), band, level) for e in entries
+    ]
     judged = {r["model"]: r["folder"] for r in results}
     odd_test, odd_model, odd = _odd(params, paths, day, source, draw, simulator, judged, logger)
 
@@ -216,8 +225,8 @@ def monitor(
     for e in entries:  # the series that follow an alias whatever model holds it
         values |= tracking.flatten_numbers({alias: report["models"][e.model] for alias in e.aliases}, "task1")
     values |= tracking.flatten_numbers({k: v for k, v in odd.items() if k != "threshold"}, "odd")
-    values |= {"alarms": len(alarms), "images": n, "samples": mon.samples, "calibration_band": band}
-    values |= {"calibration_level": level}
+    values |= {"alarms": len(alarms), "images": n, "samples": mon.samples}
+    values |= {"calibration_band": band, "calibration_level": level}
     run_name = f"monitor-{day.isoformat()}" + ("" if which == tracking.CHAMPION_ALIAS else f"-{which}")
     tags = {"pidc.models_monitored": which, "pidc.source": source, "pidc.prefect_flow_run": str(flow_run.id or "")}
     run_id = tracking.log_monitoring(

@@ -296,6 +296,8 @@ def test_prefect_yaml_deployments_monitor_on_a_process_worker(monitored_project,
         model = report["models"]["cues-2000"]
         assert model["registered_version"] == version and "champion" in model["aliases"]
         assert model["calibration_band"] == report["calibration_band"] > 0
+        # one model judged: its band at the alarm level itself (k models: 1 − (1 − level)/k each)
+        assert model["calibration_level"] == report["calibration_level"] == pytest.approx(params.monitor.alarm_level)
         assert (
             (model["calibration_error"] > model["calibration_band"])
             == (key == "wrong-labels")

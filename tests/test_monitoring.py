@@ -173,6 +173,10 @@ def test_the_calibration_alarm_names_the_model_and_the_band():
     resized = checks.calibration_alarm("cues-5000", within | {"calibration_error": 0.2, "resized_images": 12})
     assert resized.startswith(message) and "; 12 of the images were resized from another size" in resized
     assert checks.calibration_alarm("cues-5000", within | {"resized_images": 12}) is None
+    weekly = checks.calibration_alarm(
+        "cues-5000", within | {"calibration_error": 0.2, "calibration_level": 1 - 0.01 / 9}
+    )
+    assert "outside the band 0.090 (its 99.89 % quantile) of a perfectly calibrated model" in weekly
     odd = checks.FalseAlarmTest(
         FalseAlarmCheck.of(np.ones(10, bool), OddDetector(1.0, 0.1, 100), "fresh"), LEVEL, 0, 4, "binomial", (0, 4)
     )

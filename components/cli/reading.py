@@ -265,7 +265,8 @@ def _note_kind(text: str) -> str:
 
 
 def _colourless_caveat(model: Any, n: int, total: int, kinds: list[str]) -> str:
-    """What the posteriors of ``n`` of ``total`` images without colour (grayscale, black-and-white) are worth."""
+    """What the posteriors of ``n`` of ``total`` images without colour (grayscale, black-and-white, gray in every
+    pixel: the ``kinds``) are worth."""
     return (
         f"{n} of {count(total, 'image')} {'has' if n == 1 else 'have'} no colour ({', '.join(kinds)}: red, green and "
         f"blue equal in every pixel): {model.name} learned from colour renders, and the calibration measured in "

@@ -74,8 +74,8 @@ def band_replicates(replicates: int, reference_level: float, level: float) -> in
 
 def calibration_alarm(model: str, metrics: Mapping[str, float]) -> str | None:
     """The alarm of ``model`` whose Task I ``metrics`` (``calibration_error``, ``calibration_band``, ``images``,
-    ``samples``; optionally ``resized_images``, those of another size than the model's training renders) put it outside
-    its band, else None."""
+    ``samples``; optionally ``calibration_level``, the band's quantile, and ``resized_images``, those of another size
+    than the model's training renders) put it outside its band, else None."""
     error, band = float(metrics["calibration_error"]), float(metrics["calibration_band"])
     if error <= band:
         return None
@@ -86,9 +86,12 @@ def calibration_alarm(model: str, metrics: Mapping[str, float]) -> str | None:
         if resized
         else ""
     )
+    level = metrics.get("calibration_level")
+    quantile = "" if level is None else f" (its {100 * float(level):.4g} % quantile)"
     return (
         f"calibration alarm: {model} has a calibration error of {error:.3f} on {int(metrics['images'])} images "
-        f"({int(metrics['samples'])} draws each), outside the band {band:.3f} of a perfectly calibrated model{why}"
+        f"({int(metrics['samples'])} draws each), outside the band {band:.3f}{quantile} of a perfectly calibrated "
+        f"model{why}"
     )
 
 

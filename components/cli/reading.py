@@ -248,7 +248,7 @@ _NOTE_KINDS: tuple[tuple[re.Pattern[str], str], ...] = (
 #: The kinds of images without colour: the reader copies their gray level to red, green and blue, or the file holds
 #: equal red, green and blue in every pixel (a grayscale picture stored as colour; no render of the renderer does).
 COLOURLESS = re.compile(r"(\d+-bit )?grayscale → RGB|black-and-white → RGB|gray in every pixel")
-#: The note of an RGB file whose every pixel is gray (:func:`_gray_note`).
+#: The note of an RGB file whose every pixel is gray (:func:`_gray`).
 GRAY_NOTE = "gray in every pixel (red = green = blue: a grayscale picture stored as colour)"
 #: At most this many images' notes are said one line each by ``domain`` and ``relate``; more, a line per kind.
 NOTE_LINES = 5
@@ -506,15 +506,11 @@ def _reason(path: Path, message: str) -> str:
     return message[len(f"{path}: ") :] if message.startswith(f"{path}: ") else message
 
 
-def _gray_note(image: np.ndarray, pieces: list[str]) -> str | None:
-    """:data:`GRAY_NOTE` when ``image`` ``(H, W, 3)`` has red = green = blue in every pixel and the reader's notes
-    ``pieces`` do not already say it has no colour. Exact equality: the renders' darkest, foggiest nights still differ
-    by 2–3 levels somewhere (measured on the default profile's 8 000 test and validation images), and a gray picture
-    stays exactly gray through JPEG."""
-    if any(COLOURLESS.fullmatch(_note_kind(p)) for p in pieces):
-        return None
-    gray = np.array_equal(image[..., 0], image[..., 1]) and np.array_equal(image[..., 1], image[..., 2])
-    return GRAY_NOTE if gray else None
+def _gray(image: np.ndarray) -> bool:
+    """Whether ``image`` ``(H, W, 3)`` has red = green = blue in every pixel. Exact equality: the renders' darkest,
+    foggiest nights still differ by 2–3 levels somewhere (measured on the default profile's 8 000 test and validation
+    images), and a gray picture stays exactly gray through JPEG."""
+    return np.array_equal(image[..., 0], image[..., 1]) and np.array_equal(image[..., 1], image[..., 2])
 
 
 def _colour_note(model: Any) -> str:
@@ -549,9 +545,11 @@ def read_batches(
                     log.skip(path, _reason(path, str(e)))
                 else:
                     pieces = note.split("; ") if note else []
-                    if gray := _gray_note(image, pieces):
-                        pieces.append(gray)
-                    if any(COLOURLESS.fullmatch(_note_kind(p)) for p in pieces):
+                    colourless = any(COLOURLESS.fullmatch(_note_kind(p)) for p in pieces)
+                    if not colourless and _gray(image):  # a grayscale picture stored as colour
+                        pieces.append(GRAY_NOTE)
+                        colourless = True
+                    if colourless:
                         pieces.append(_colour_note(model))
                     if squash := _squash_note(model, image):
                         pieces.append(squash)

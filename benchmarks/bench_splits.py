@@ -7,10 +7,11 @@ the test split's plan under other root seeds (``params.yaml``'s seed + 1, + 2, �
 image and renderer; none of their scenes is the pipeline's), computes the model's backbone features, and scores the
 model on each exactly like ``bench_levers.py`` (``score``: information gain, calibration error and its band, per
 parameter the day and night median |posterior median − truth| and the night and day 68 % coverage), beside the
-pipeline's own test split (its cached features, ``features/<backbone>/``). It prints one row per split and the mean
-and standard deviation over the fresh ones, and writes them as JSON to ``--out``. Usage::
+pipeline's own test split (its cached features, ``features/<backbone>/``; ``--pipeline-splits test val`` adds the
+validation split, whose 6 000 images chose the best epoch and fitted τ but none of the figures' development). It prints
+one row per split and the mean and standard deviation over the fresh ones, and writes them as JSON to ``--out``. Usage::
 
-    python benchmarks/bench_splits.py --model models/cues-50000/model.pt --splits 4
+    python benchmarks/bench_splits.py --model models/cues-50000/model.pt --splits 4 [--pipeline-splits test val]
 
 The fresh splits' features are kept in ``--cache`` (keyed by seed, size, the renderer's version and the backbone's
 fingerprint), so a second model of the same backbone costs only its draws. Models of a frozen backbone only (``cues``,
@@ -102,6 +103,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument(
         "--root", type=Path, default=ROOT, help="the pipeline's project root (params.yaml, data/, features/)"
     )
+    p.add_argument(
+        "--pipeline-splits",
+        nargs="+",
+        default=["test"],
+        choices=["test", "val"],
+        help="the pipeline's own splits scored beside the fresh ones (their cached features)",
+    )
     p.add_argument("--cache", type=Path, default=ROOT / "benchmarks" / "results" / "splits" / "cache")
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "splits")
     a = p.parse_args(argv)
@@ -121,8 +129,11 @@ def main(argv: list[str] | None = None) -> None:
     backbone = get_backbone(header["backbone"], **header["backbone_options"]).eval()
     name = header["extra"].get("model_id", a.model.parent.name)
     t0 = time.perf_counter()
-    test = dataset.open_split(a.root / params.data.root, "test")
-    splits = {"test": (cache.open_features(a.root / "features", backbone.name, test), test.theta.astype(np.float32))}
+    splits = {}
+    for split in a.pipeline_splits:
+        images = dataset.open_split(a.root / params.data.root, split)
+        x = cache.open_features(a.root / "features", backbone.name, images)
+        splits[split] = (x, images.theta.astype(np.float32))
     for k in range(1, a.splits + 1):
         splits[f"seed+{k}"] = fresh_features(params, backbone, params.seed + k, size, a.workers, a.cache)
     rows = {}
@@ -138,7 +149,7 @@ def main(argv: list[str] | None = None) -> None:
             f"{' / '.join(f'{100 * v:.1f}' for v in r['night_coverage68'].values())} |",
             flush=True,
         )
-    fresh = summarize([r for s, r in rows.items() if s != "test"])
+    fresh = summarize([r for s, r in rows.items() if s not in a.pipeline_splits])
     for k in BLOCKS:
         spread = {p: "" if v["sd"] is None else f" ± {v['sd']:.3f}" for p, v in fresh[k].items()}
         print(f"fresh splits, {k}: " + ", ".join(f"{p} {v['mean']:.3f}{spread[p]}" for p, v in fresh[k].items()))

@@ -305,7 +305,7 @@ def test_tiny_fingerprint_depends_on_grid() -> None:
 # -- cnn ------------------------------------------------------------------------------------------------
 def test_cnn_seeded_init() -> None:
     a, b, c = (get_backbone("cnn", seed=s) for s in (3, 3, 4))
-    for (k, ta), tb in zip(a.state_dict().items(), b.state_dict().values(), strict=False):
+    for (k, ta), tb in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
         torch.testing.assert_close(ta, tb, rtol=0, atol=0, msg=k)
     assert a.fingerprint() == b.fingerprint() != c.fingerprint()
     assert not torch.equal(a.head.weight, c.head.weight)

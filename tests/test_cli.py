@@ -16,6 +16,7 @@ from components.core import weather
 
 
 def test_presets_are_valid_weathers():
+    assert PRESETS
     for name, w in PRESETS.items():
         weather.complete_weather(w, where=f"preset {name}: ")
 

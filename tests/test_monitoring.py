@@ -253,15 +253,15 @@ def test_grown_in_odd_gaps_raise_the_false_alarm_alarm():
 
 
 def test_the_false_alarm_interval_refuses_bad_arguments():
-    for bad in (
-        {"n": 0},
-        {"alpha": 1.0},
-        {"level": 1.5},
-        {"calibration_targets": 20},
-        {"calibration_targets": 20, "rank": 21},
+    for bad, message in (
+        ({"n": 0}, "n must be a positive number of targets, got 0"),
+        ({"alpha": 1.0}, r"alpha must be in \(0, 1\), got 1.0"),
+        ({"level": 1.5}, r"level must be in \(0, 1\), got 1.5"),
+        ({"calibration_targets": 20}, "give both calibration_targets and rank, or neither"),
+        ({"calibration_targets": 20, "rank": 21}, "rank must lie in 1…20 .calibration_targets., got 21"),
     ):
         args = {"n": 10, "alpha": 0.1, "level": LEVEL} | bad
-        with pytest.raises(ValueError):
+        with pytest.raises(ValueError, match=message):
             checks.false_alarm_interval(**args)
 
 
@@ -306,10 +306,8 @@ def _recorded(folder: Path, rows: list[list], header: list[str] | None = None, i
 GOOD = [["a.png", 20, 5, 0, 35.5, 10, 0], ["b.png", 90, 50, 100, -90, 0, 100]]
 
 
-def test_a_recorded_folder_is_read_in_file_order():
-    import tempfile
-
-    folder = _recorded(Path(tempfile.mkdtemp()) / "rec", GOOD)
+def test_a_recorded_folder_is_read_in_file_order(tmp_path):
+    folder = _recorded(tmp_path / "rec", GOOD)
     rec = read_recorded(folder, weather.Box.full())
     assert rec.names == ["a.png", "b.png"] and rec.theta.tolist() == [row[1:] for row in GOOD]
     assert [im.shape for im in rec.images] == [(8, 10, 3), (9, 10, 3)]

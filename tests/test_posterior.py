@@ -521,7 +521,7 @@ def test_training_history_schedule_early_stopping_and_best_weights(tmp_path: obj
         m2, (x, th), (xv, thv), cfg, checkpoint=path, callback=lambda r: more.append(r.epoch), progress=False
     )
     assert more == [] and resumed.val_loss == val and resumed.stopped_early
-    assert all(torch.equal(a, b) for a, b in zip(m.state_dict().values(), m2.state_dict().values(), strict=False))
+    assert all(torch.equal(a, b) for a, b in zip(m.state_dict().values(), m2.state_dict().values(), strict=True))
 
 
 def test_without_patience_every_epoch_runs_and_the_best_weights_are_kept() -> None:
@@ -578,7 +578,7 @@ def test_killed_run_resumes_to_the_same_result(tmp_path: object) -> None:
     assert epochs_run == [3, 4, 5]
     assert resumed.val_loss == ref.val_loss and resumed.train_loss == ref.train_loss and resumed.lr == ref.lr
     assert resumed.best_epoch == ref.best_epoch
-    for (k, a), b in zip(full.state_dict().items(), resumed_model.state_dict().values(), strict=False):
+    for (k, a), b in zip(full.state_dict().items(), resumed_model.state_dict().values(), strict=True):
         assert torch.equal(a, b), k
 
     # a finished checkpoint: nothing is trained again, the best weights are restored
@@ -588,7 +588,7 @@ def test_killed_run_resumes_to_the_same_result(tmp_path: object) -> None:
     )
     assert isinstance(again, History) and again.val_loss == ref.val_loss and -1 not in epochs_run
     assert all(
-        torch.equal(a, b) for a, b in zip(full.state_dict().values(), again_model.state_dict().values(), strict=False)
+        torch.equal(a, b) for a, b in zip(full.state_dict().values(), again_model.state_dict().values(), strict=True)
     )
     with pytest.raises(ValueError, match="other training settings \\(lr\\)"):
         train(

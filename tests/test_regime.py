@@ -20,7 +20,7 @@ from components.posterior.model import NPE, FlowConfig
 from components.posterior.regime import RegimeTemperature, fit_gate
 from components.posterior.temperature import Regime, calibrate, fit_regime_gate
 from tests.test_posterior_calibration import BOX, _fit, simulate
-from tests.test_temperature import assert_proper_and_self_consistent
+from tests.test_temperature import assert_gain_holds_on_new_pairs, assert_proper_and_self_consistent
 
 torch.set_num_threads(1)
 NIGHT = Regime(index=1, below=0.0, name="night")
@@ -76,7 +76,8 @@ def test_fit_recovers_known_regime_temperatures(ensemble: int, tolerance: float)
     model.set_temperature(torch.ones(2))
     report = calibrate(model, x, theta, NIGHT)
     np.testing.assert_allclose(model.temperature.numpy(), TAU.numpy(), rtol=tolerance)
-    assert report["heldout_nll_gain"] > 0
+    fresh = torch.tensor(simulate(seeding.rng(0, "regime", "fresh"), 4000)[0])
+    assert_gain_holds_on_new_pairs(model, TAU, fresh, report["heldout_nll_gain"])
     assert set(report) == {
         "temperature.cloudiness",
         "temperature.sun_altitude_angle",

@@ -338,7 +338,9 @@ def test_calibrated_on_sources_flags_few_in_odd_and_all_out_of_odd_targets(world
     post, sources = world
     detector = calibrate_on_sources(sources, 199, 16, 0.05, seed=21, target_size=10)
     rate = detector.decide_many(fresh_in_odd_relative_gaps(post, sources, 7000, 300, 10)).mean()
-    assert rate < 0.05 + FA_TOLERANCE, rate
+    assert 0.01 <= rate < 0.05 + FA_TOLERANCE, (
+        rate
+    )  # few, yet some (measured 7 of 300): not a detector that never fires
     outside = [relate(out_odd_target(post, s, 0.5), sources, 16, seed=s).relative_gap for s in range(10)]
     assert all(detector.decide(g) for g in outside)
     # an exact mixture of the source characterizations has δ = 0: it could not have calibrated anything
@@ -365,7 +367,7 @@ def test_calibration_with_a_single_source_tests_likeness(world):
     post, sources = world
     detector = calibrate_on_sources([sources[0]], 199, 16, 0.05, seed=6, target_size=10)
     like = fresh_in_odd_relative_gaps(post, [sources[0]], 100, 100, 10, boxes=[SOURCE_BOXES[0]])
-    assert detector.decide_many(like).mean() < 0.05 + FA_TOLERANCE
+    assert 0 < detector.decide_many(like).mean() < 0.05 + FA_TOLERANCE  # measured 5 of 100
     other = fresh_in_odd_relative_gaps(post, [sources[0]], 200, 20, 10, boxes=[SOURCE_BOXES[1]])
     assert detector.decide_many(other).all()
 

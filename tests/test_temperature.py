@@ -16,10 +16,11 @@ import pytest
 import torch
 
 from components.core import seeding
+from components.evaluate import task1
 from components.evaluate.diagnostics import calibration_error
 from components.posterior.model import NPE, FlowConfig
 from components.posterior.temperature import base_points, calibrate, fit_temperature, tempered_nll
-from tests.test_posterior_calibration import BOX, _credibility, _fit, simulate
+from tests.test_posterior_calibration import BOX, DRAWS, IMAGES, LEVEL, _credibility, _fit, simulate
 
 torch.set_num_threads(1)
 TAU = torch.tensor([1.6, 0.7])
@@ -57,6 +58,21 @@ def test_tempered_density_integrates_to_one_and_matches_its_draws(toy: NPE) -> N
     np.testing.assert_allclose(model.temperature.numpy(), [1.3, 0.8], rtol=1e-6)
 
 
+def assert_gain_holds_on_new_pairs(model: NPE, true_tau: torch.Tensor, x: torch.Tensor, reported: float) -> None:
+    """The NLL that the fitted τ saves, as ``calibrate`` reports it from the pairs it fitted τ on (≥ 0 there by
+    construction), is what it saves on new pairs ``(x, θ)``, θ drawn with the true τ: positive beyond 5 standard
+    errors of the new pairs' mean and within 4 of the report (the report's own noise is about as large; measured
+    differences 0.8–2.4 standard errors on the toys of these tests)."""
+    truth, plain = copy.deepcopy(model), copy.deepcopy(model)
+    truth.set_temperature(true_tau)
+    plain.set_temperature(torch.ones(model.dim))
+    with torch.no_grad():
+        theta = truth.sample(x, 1, rng=5)[:, 0].double()
+        saved = (model.log_prob(theta, x) - plain.log_prob(theta, x)).double()
+    mean, se = float(saved.mean()), float(saved.std() / len(saved) ** 0.5)
+    assert mean > 5 * se and abs(mean - reported) < 4 * se, (mean, se, reported)
+
+
 @pytest.mark.parametrize(("ensemble", "tolerance"), [(1, 0.05), (2, 0.08)])
 def test_fit_recovers_a_known_temperature(ensemble: int, tolerance: float) -> None:
     model = _random_model(ensemble, 7)
@@ -67,7 +83,8 @@ def test_fit_recovers_a_known_temperature(ensemble: int, tolerance: float) -> No
     model.set_temperature(torch.ones(2))
     report = calibrate(model, x, theta)
     np.testing.assert_allclose(model.temperature.numpy(), TAU.numpy(), rtol=tolerance)
-    assert report["heldout_nll_gain"] > 0
+    fresh = torch.tensor(simulate(seeding.rng(0, "temperature", "fresh"), 4000)[0])
+    assert_gain_holds_on_new_pairs(model, TAU, fresh, report["heldout_nll_gain"])
     assert set(report) == {"temperature.cloudiness", "temperature.sun_altitude_angle", "heldout_nll_gain"}
 
 
@@ -89,15 +106,20 @@ def test_fitted_temperature_is_the_likelihood_maximum() -> None:
 def test_calibration_repairs_an_overconfident_posterior(toy: NPE) -> None:
     """The toy's trained NPE made overconfident (τ = 0.6), then re-fitted on held-out pairs: calibrated again."""
     model = copy.deepcopy(toy)
-    x, theta = simulate(seeding.rng(0, "toy", "test"), 1000)
+    x, theta = simulate(seeding.rng(0, "toy", "test"), IMAGES)
     model.set_temperature(torch.full((2,), 0.6))
     sharp = calibration_error(_credibility(model, x, theta))
     xv, thv = simulate(seeding.rng(0, "temperature", "heldout"), 2000)
     calibrate(model, torch.tensor(xv), torch.tensor(thv))
     repaired = calibration_error(_credibility(model, x, theta))
     assert sharp > 0.2, sharp
-    assert repaired < 0.1, repaired  # the plain toy model's own bound (test_posterior_calibration)
-    assert bool(((model.temperature > 0.8) & (model.temperature < 1.25)).all()), model.temperature
+    # inside the band the plain toy model is held to (test_posterior_calibration: 0.999 quantile, 0.061; measured 0.032)
+    band = task1.calibration_band(IMAGES, DRAWS, LEVEL, 20_000, 0)
+    assert repaired < band, (repaired, band)
+    # τ is absolute: the fit from the overconfident 0.6 lands where the fit from the plain model's 1 does
+    plain = copy.deepcopy(toy)
+    calibrate(plain, torch.tensor(xv), torch.tensor(thv))
+    torch.testing.assert_close(model.temperature, plain.temperature, rtol=1e-5, atol=0)
 
 
 def test_bad_temperatures_are_refused() -> None:

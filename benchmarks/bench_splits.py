@@ -8,7 +8,7 @@ image and renderer; none of their scenes is the pipeline's), computes the model'
 model on each exactly like ``bench_levers.py`` (``score``: information gain, calibration error and its band, per
 parameter the day and night median |posterior median − truth| and the night and day 68 % coverage), beside the
 pipeline's own test split (its cached features, ``features/<backbone>/``; ``--pipeline-splits test val`` adds the
-validation split, whose 6 000 images chose the best epoch and fitted τ but none of the figures' development). It prints
+validation split, whose images chose the best epoch and fitted τ but none of the figures' development). It prints
 one row per split and the mean and standard deviation over the fresh ones, and writes them as JSON to ``--out``. Usage::
 
     python benchmarks/bench_splits.py --model models/cues-50000/model.pt --splits 4 [--pipeline-splits test val]

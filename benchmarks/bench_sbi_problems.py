@@ -38,7 +38,7 @@ files there. Usage, from the repository root::
 
 Prints a table (C2ST mean ± std over the observations, training seconds, epochs) and one JSON line with the
 settings, the machine and every figure. Figures of 2026-11-23 (``--samples 5000``) and the recommended change of
-the training defaults (``steps-small``, adopted as ``train.scale_to``): BENCHMARKS.md, "Standard SBI problems".
+the training defaults (``steps-small``, adopted as ``train.scale_to``): docs/studies/sbi-problems.md.
 """
 
 from __future__ import annotations

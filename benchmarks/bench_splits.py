@@ -38,8 +38,8 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from benchmarks.bench_levers import score  # noqa: E402
 from benchmarks.machine import machine_info  # noqa: E402
+from benchmarks.studies.bench_levers import score  # noqa: E402
 from components.core.config import load_params  # noqa: E402
 from components.core.files import atomic_path  # noqa: E402
 from components.core.weather import PREDICTED  # noqa: E402

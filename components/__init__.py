@@ -6,7 +6,7 @@ Importing it first (every stage and the ``pidc`` CLI do) pins numpy's run-time S
 kernels, unless the user set ``NPY_DISABLE_CPU_FEATURES``: numpy chooses AVX2 or AVX-512 kernels by CPU and rounds
 float32 ``exp`` differently in each, so one weather and scene rendered to images that differed from one CPU to
 another (measured: AVX2 against the x86-64-v2 baseline changed 5 of 40 images, a few pixels each by one level;
-README, "The pipeline"). With the baseline kernels everywhere the rendered data are byte-identical across x86-64
+docs/reproducibility.md). With the baseline kernels everywhere the rendered data are byte-identical across x86-64
 machines, at the same render speed (116 against 119 images/s on one core). It has no effect once numpy is imported.
 
 Imported by every stage and the ``pidc`` CLI.

@@ -2,18 +2,18 @@
 
 ``python -m flows.evaluate [--params params.yaml]``. The models are the exported ones of ``registry/``, run on the
 torch-free onnxruntime posterior (what a vehicle would run), ``evaluate.runner.workers`` models at a time (one
-onnxruntime thread each). Per model (:mod:`components.evaluate.task1`): posterior samples and their log-densities for
-``evaluate.images`` test images (``all``: the whole split), HPD credibility of the ground truth, expected coverage,
-calibration error beside the band of a perfectly calibrated model on as many images, signed coverage area,
-superiority π, test NLL, information gain, a quantitative posterior predictive check, and per parameter
-(:mod:`components.evaluate.marginals`) interval widths and coverage, median errors and marginal information gain, for
-all, day and night truths. Writes ``reports/task1/``: ``metrics.json`` (model → headline metrics), ``models/<model>.json``
-(one flat row per model: the DVC metrics), ``parameters.json`` (model → subset → parameter → figures), ``profiles.json``
-(the same by bin of the true value, :mod:`components.evaluate.profile`), ``coverage.json``,
-``table.md`` (the README's results table) and PNG plots; logs them to each model's MLflow run; names the champion
-(:mod:`components.evaluate.champion`): MLflow aliases ``champion`` and ``challenger`` (the runner-up) and the pointer
-``reports/task1/champion.json`` (written before the aliases move: a kill between the two leaves the aliases behind
-the pointer, never ahead of it).
+onnxruntime thread each). Per model (:mod:`components.evaluate.evaluation`, :mod:`components.evaluate.task1`): posterior
+samples and their log-densities for ``evaluate.images`` test images (``all``: the whole split), HPD credibility of the
+ground truth, expected coverage, calibration error beside the band of a perfectly calibrated model on as many images,
+signed coverage area, superiority π, test NLL, information gain, a quantitative posterior predictive check, and per
+parameter (:mod:`components.evaluate.marginals`) interval widths and coverage, median errors and marginal information
+gain, for all, day and night truths. Writes ``reports/task1/`` (:mod:`components.evaluate.publish`): ``metrics.json``
+(model → headline metrics), ``models/<model>.json`` (one flat row per model: the DVC metrics), ``parameters.json``
+(model → subset → parameter → figures), ``profiles.json`` (the same by bin of the true value,
+:mod:`components.evaluate.profile`), ``coverage.json``, ``table.md`` (the results table) and PNG plots; logs
+them to each model's MLflow run; names the champion (:mod:`components.evaluate.champion`): MLflow aliases ``champion``
+and ``challenger`` (the runner-up) and the pointer ``reports/task1/champion.json`` (written before the aliases move: a
+kill between the two leaves the aliases behind the pointer, never ahead of it).
 
 Each model's finished evaluation (its result and its plots) is kept under ``.cache/task1/<model>/<key>/``
 (:meth:`ProjectPaths.kept`, outside the stage's DVC outputs, which DVC removes when the stage starts), written
@@ -30,47 +30,25 @@ import importlib.metadata
 import inspect
 import json
 import platform
-import time
 from pathlib import Path
 
-import numpy as np
 from prefect import flow, task
 
-from components import plots
-from components.core import kept, seeding
+from components.core import kept
 from components.core.code import code_fingerprint
 from components.core.config import Params
-from components.core.files import atomic_write_bytes, sha256_file
+from components.core.files import sha256_file
 from components.core.paths import ProjectPaths
-from components.evaluate import marginals, profile, report, task1
+from components.evaluate import evaluation, publish, task1
 from components.evaluate.champion import NoChampionError, champion_pointer, choose_champion
 from components.export.lookup import CHAMPION_POINTER
-from components.export.runtime import OnnxPosterior
 from components.features import cache as features
-from components.features.backbones import get_backbone
 from components.simulate import dataset
-from components.simulate.base import make_simulator
 from flows import tracking
 from flows.stage import Stage, at_most, open_stage, parse_stage_args, share_api_with_workers, task_runner
 
-
-def _write_json(path, value) -> None:
-    atomic_write_bytes(path, json.dumps(value, indent=1).encode())
-
-
-#: The project modules a model's evaluation (:func:`_evaluate_into`) runs: their import closure is the code of its key.
-EVALUATION_MODULES = (
-    "components.core.seeding",
-    "components.evaluate.marginals",
-    "components.evaluate.profile",
-    "components.evaluate.task1",
-    "components.export.runtime",
-    "components.features.backbones",
-    "components.features.cache",
-    "components.plots",
-    "components.simulate.base",
-    "components.simulate.dataset",
-)
+#: The project module a model's evaluation (:func:`_evaluate_into`) runs: its import closure is the code of its key.
+EVALUATION_MODULES = ("components.evaluate.evaluation",)
 #: The libraries whose versions can change a model's figures or plot files (distribution names; absent ones count too).
 EVALUATION_LIBRARIES = (
     "numpy",
@@ -188,159 +166,32 @@ def evaluate_model(model_id: str, params_path: str, band: float, key: str, parts
 
 
 def _evaluate_into(stage: Stage, model_id: str, band: float, plot_dir: Path) -> dict:
-    """Task I of one exported model, its plots written into ``plot_dir``; the result (JSON-serializable)."""
-    params, paths, ev = stage.params, stage.paths, stage.params.evaluate
-    start, cpu = time.perf_counter(), time.thread_time()  # one onnxruntime thread: the calling one
-    folder = paths.registry / model_id
-    posterior = OnnxPosterior.load(folder, intra_op_num_threads=1)  # parallel over models, not inside one
-    task1.check_model_matches_data(posterior.box, params, folder / "card.json")
-    card = posterior.card
-    test = dataset.open_split(paths.data, "test")
-    n = task1.images_evaluated(ev.images, len(test))
-    backbone = get_backbone(card["backbone"], **card["backbone_options"])
-    x = features.inputs_from_cached(backbone, features.open_features(paths.features, card["backbone"], test, stop=n))
-    truth = test.theta[:n]
-    loaded = time.perf_counter()
-    samples, lp, lp_truth = task1.posterior_draws(
-        posterior, x, truth, ev.samples, seeding.derive_seed(params.seed, model_id)
-    )
-    drawn = time.perf_counter()
-    metrics, coverage, pi = task1.task1_metrics(lp, lp_truth, params.box.log_volume(), band)
-    metrics |= {"images": n, "samples": ev.samples}
-    scores = marginals.marginal_scores(samples, truth, params.box)
-    parameters = marginals.summarize_subsets(scores, truth, params.box)
-    profiles = profile.truth_profile(scores, truth, params.box, ev.profile_bins)
-    scored = time.perf_counter()
-
-    # posterior predictive checks: the same scene re-rendered under posterior and prior draws
-    n_ppc = min(ev.ppc_images, n)
-    ppc_images = test.images(stop=n_ppc)
-    checks = task1.posterior_predictive_checks(
-        make_simulator(params.simulator),
-        ppc_images,
-        test.scene_seed[:n_ppc],
-        test.weather[:n_ppc, 6],
-        samples,
-        params.box,
-        ev.ppc_renders,
-        seeding.rng(params.seed, "ppc", model_id),
-    )
-    metrics["ppc_score"] = float(np.median([c.score for c in checks])) if checks else float("nan")
-    if checks:
-        c = checks[0]
-        plots.save_figure(
-            plots.ppc_sheet(
-                ppc_images[0],
-                c.posterior_renders,
-                c.prior_renders,
-                {"posterior": c.d_posterior, "prior": c.d_prior},
-                title=f"{model_id}: posterior predictive check (score {c.score:.2f})",
-            ),
-            plot_dir / "ppc.png",
-        )
-    plots.save_figure(
-        plots.truth_profile_plot(profiles, title=f"{model_id}: Task I across the true value ({n} test images)"),
-        plot_dir / "profile.png",
-    )
-    for i in range(min(ev.example_images, n)):
-        plots.save_figure(
-            plots.marginal_histograms(samples[i], lp[i], truth[i], box=params.box), plot_dir / f"histograms-{i}.png"
-        )
-        for zoom in (False, True):
-            plots.save_figure(
-                plots.corner_plot(
-                    samples[i],
-                    lp[i],
-                    truth[i],
-                    box=params.box,
-                    zoom=zoom,
-                    title=f"{model_id}, test image {i}" + (" (zoomed)" if zoom else ""),
-                ),
-                plot_dir / f"corner-{'zoom-' if zoom else ''}{i}.png",
-            )
-    end = time.perf_counter()
-    stage.logger.info(
-        "%s: %d images × %d draws in %.1f s, CPU %.1f s (load %.1f s, draws %.1f s, metrics %.1f s, PPC and plots %.1f s)",
-        model_id,
-        n,
-        ev.samples,
-        end - start,
-        time.thread_time() - cpu,
-        loaded - start,
-        drawn - loaded,
-        scored - drawn,
-        end - scored,
-    )
-    return {
-        "model": model_id,
-        "metrics": metrics,
-        "coverage": coverage.tolist(),
-        "pi": pi.tolist(),
-        "parameters": parameters,
-        "profiles": profiles,
-    }
+    """Task I of one exported model, its plots written into ``plot_dir``; the result (JSON-serializable,
+    :func:`components.evaluate.evaluation.evaluate_exported`)."""
+    return evaluation.evaluate_exported(stage.params, stage.paths, model_id, band, plot_dir, stage.logger)
 
 
-@flow(name="evaluate", log_prints=True)
-def evaluate(params_path: str) -> dict:
-    """Evaluate every model of the grid; write reports/task1/, log to MLflow and name the champion."""
-    stage = open_stage(params_path)
-    params, paths, logger, ev = stage.params, stage.paths, stage.logger, stage.params.evaluate
-    out = paths.reports("task1")
+def _results(stage: Stage, test: dataset.Split, n: int, band: float) -> tuple[list[dict], dict[str, str]]:
+    """Every model's result in grid order, kept ones reused and the others evaluated ``evaluate.runner.workers`` at a
+    time, the costliest first; and model id → the key it is kept under."""
+    params, paths = stage.params, stage.paths
     ids = params.model_ids()
-    missing = [m for m in ids if not (paths.registry / m / "card.json").is_file()]
-    if missing:
-        raise FileNotFoundError(f"no exported model in registry/ for {', '.join(missing)}: run `dvc repro export`")
-    test = dataset.open_split(paths.data, "test")  # a missing test split fails here, before any work
-    n = task1.images_evaluated(ev.images, len(test))
-    band = task1.calibration_band(n, ev.samples, ev.band_level, ev.band_replicates, params.seed)
     cards = {m: json.loads((paths.registry / m / "card.json").read_text()) for m in ids}
     code = evaluation_code()
     keyed = {m: evaluation_key(params, paths, m, test, n, band, code) for m in ids}
-    reused = {m: r for m in ids if (r := reuse_kept(paths, m, keyed[m][0], logger)) is not None}
+    reused = {m: r for m in ids if (r := reuse_kept(paths, m, keyed[m][0], stage.logger)) is not None}
     share_api_with_workers()
     done = at_most(
-        ev.runner.workers,
+        params.evaluate.runner.workers,
         [m for m in task1.evaluation_order(ids, cards) if m not in reused],
         lambda m: evaluate_model.submit(m, str(stage.params_file), band, *keyed[m]),
         "evaluate models",
     )
-    results = [reused[m] if m in reused else done[m] for m in ids]
+    return [reused[m] if m in reused else done[m] for m in ids], {m: k for m, (k, _) in keyed.items()}
 
-    levels = task1.LEVELS
-    curves = {r["model"]: (levels, np.array(r["coverage"])) for r in results}
-    plots.save_figure(
-        plots.coverage_plot(
-            curves,
-            title=f"Task I: expected coverage on {n} test images",
-            band=band,
-            band_label=f"{100 * ev.band_level:g} % band of a calibrated\nmodel on {n} images",
-        ),
-        out / "plots" / "coverage.png",
-    )
-    plots.save_figure(
-        plots.superiority_boxplot({r["model"]: np.array(r["pi"]) for r in results}), out / "plots" / "superiority.png"
-    )
-    metrics = {r["model"]: r["metrics"] for r in results}
-    parameters = {r["model"]: r["parameters"] for r in results}
-    _write_json(out / "metrics.json", metrics)
-    _write_json(out / "parameters.json", parameters)
-    _write_json(out / "profiles.json", {r["model"]: r["profiles"] for r in results})
-    rows = {m: report.model_row(metrics[m], parameters[m]) for m in ids}
-    for m, row in rows.items():
-        _write_json(out / "models" / f"{m}.json", row)
-    for stale in (out / "models").glob("*.json"):
-        if stale.stem not in rows:
-            stale.unlink()  # a model no longer in the grid
-    plots.save_figure(plots.parameter_heatmaps(parameters, box=params.box), out / "plots" / "parameters.png")
-    coverage_rows = [
-        {"model": m, "level": float(lv), "coverage": float(c)}
-        for m, (ls, cs) in curves.items()
-        for lv, c in zip(ls, cs, strict=True)
-    ]
-    atomic_write_bytes(out / "coverage.json", json.dumps(coverage_rows).encode())
-    tracking.log_task1(paths.root, params.train.experiment, results, out / "plots")
-    grid_files = [out / "plots" / f for f in ("coverage.png", "superiority.png", "parameters.png")]
+
+def _log_models(logger, metrics: dict[str, dict]) -> None:
+    """One log line of headline figures per model."""
     for m, v in metrics.items():
         logger.info(
             "%s: calibration error %.3f (band %.3f: %s), coverage gap %+.3f, π median %.2f, NLL %.2f (information "
@@ -356,34 +207,36 @@ def evaluate(params_path: str) -> dict:
             v["ppc_score"],
         )
 
+
+def _name_champion(stage: Stage, out: Path, grid: publish.GridReports, data_hash: str) -> None:
+    """Choose the champion and the runner-up; write the table and ``champion.json``, move the MLflow aliases and
+    describe the grid's run. Without a champion: no pointer, no aliases, the table without one, then
+    :class:`NoChampionError`."""
+    params, paths, metrics = stage.params, stage.paths, grid.metrics
+    band_level = params.evaluate.band_level
     try:
         champion, runner_up = choose_champion(metrics, params.export.champion_max_calibration_error)
     except NoChampionError:
         (paths.root / CHAMPION_POINTER).unlink(missing_ok=True)  # no stale pick for task2, task3 and the CLI
         tracking.clear_champion_aliases(paths.root, params)  # nor for models:/pidc@champion (the monitoring)
-        table = report.results_table(rows, None, ev.band_level)
-        atomic_write_bytes(out / "table.md", table.encode())
-        tracking.describe_grid(paths.root, params, test.content_hash, metrics, None, table, grid_files)
+        table = publish.write_table(out, grid.rows, None, band_level)
+        tracking.describe_grid(paths.root, params, data_hash, metrics, None, table, grid.files)
         raise
-    table = report.results_table(rows, champion.model, ev.band_level)
-    atomic_write_bytes(out / "table.md", table.encode())
-    grid_files.append(out / "table.md")
-    pointer = champion_pointer(metrics, champion, runner_up)
-    pointer |= {"registered_model": tracking.registered_model(params)}
-    if runner_up:
-        pointer["runner_up"] |= {"registered_model": tracking.registered_model(params)}
+    table = publish.write_table(out, grid.rows, champion.model, band_level)
+    files = [*grid.files, out / "table.md"]
+    pointer = publish.registered_pointer(
+        champion_pointer(metrics, champion, runner_up), tracking.registered_model(params)
+    )
     # the pointer first, then the aliases: a kill in between leaves the aliases behind champion.json, never ahead
-    _write_json(paths.root / CHAMPION_POINTER, pointer)
+    publish.write_json(paths.root / CHAMPION_POINTER, pointer)
     aliases = tracking.set_champion_alias(
         paths.root, params, metrics, champion.model, runner_up.model if runner_up else None, paths.registry
     )
     if aliases:  # the versions the aliases now name
-        pointer |= aliases.get(tracking.CHAMPION_ALIAS, {})
-        if runner_up:
-            pointer["runner_up"] |= aliases.get(tracking.CHALLENGER_ALIAS, {})
-        _write_json(paths.root / CHAMPION_POINTER, pointer)
-    tracking.describe_grid(paths.root, params, test.content_hash, metrics, pointer, table, grid_files)
-    logger.info(
+        pointer = publish.with_versions(pointer, aliases, tracking.CHAMPION_ALIAS, tracking.CHALLENGER_ALIAS)
+        publish.write_json(paths.root / CHAMPION_POINTER, pointer)
+    tracking.describe_grid(paths.root, params, data_hash, metrics, pointer, table, files)
+    stage.logger.info(
         "champion: %s (%s: %s), %s",
         champion.model,
         champion.rule,
@@ -391,10 +244,29 @@ def evaluate(params_path: str) -> dict:
         pointer.get("uri", "not in the MLflow Model Registry"),
     )
     if runner_up:
-        logger.info("runner-up (challenger): %s (%s)", runner_up.model, runner_up.rule)
-    for stale in kept.prune(paths.kept("task1"), {m: k for m, (k, _) in keyed.items()}):
-        logger.info("removed the stale kept evaluation %s", stale)
-    return metrics
+        stage.logger.info("runner-up (challenger): %s (%s)", runner_up.model, runner_up.rule)
+
+
+@flow(name="evaluate", log_prints=True)
+def evaluate(params_path: str) -> dict:
+    """Evaluate every model of the grid; write reports/task1/, log to MLflow and name the champion."""
+    stage = open_stage(params_path)
+    params, paths, ev = stage.params, stage.paths, stage.params.evaluate
+    out = paths.reports("task1")
+    missing = [m for m in params.model_ids() if not (paths.registry / m / "card.json").is_file()]
+    if missing:
+        raise FileNotFoundError(f"no exported model in registry/ for {', '.join(missing)}: run `dvc repro export`")
+    test = dataset.open_split(paths.data, "test")  # a missing test split fails here, before any work
+    n = task1.images_evaluated(ev.images, len(test))
+    band = task1.calibration_band(n, ev.samples, ev.band_level, ev.band_replicates, params.seed)
+    results, keys = _results(stage, test, n, band)
+    grid = publish.write_grid_reports(out, results, params, n, band)
+    tracking.log_task1(paths.root, params.train.experiment, results, out / "plots")
+    _log_models(stage.logger, grid.metrics)
+    _name_champion(stage, out, grid, test.content_hash)
+    for stale in kept.prune(paths.kept("task1"), keys):
+        stage.logger.info("removed the stale kept evaluation %s", stale)
+    return grid.metrics
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -26,6 +26,7 @@ calibration error leaves its band or the ODD false-alarm count leaves its interv
 
 from __future__ import annotations
 
+import datetime
 import json
 import time
 
@@ -150,51 +151,41 @@ def _odd(params: Params, paths: ProjectPaths, day, source: str, draw: draws.Draw
     return test, calibrated.model, setting | test.to_dict()
 
 
-@flow(name="monitor", log_prints=True)
-def monitor(
-    params_path: str = "params.yaml", date: str | None = None, models: str | None = None, source: str | None = None
-) -> dict:
-    """Judge the registered models on the new draws of the run's date; write reports/monitoring/<date>/ and an MLflow
-    run; fail on an alarm. ``models`` and ``source`` override ``monitor.models`` and ``monitor.source``."""
-    start = time.perf_counter()
-    stage = open_stage(params_path)
-    params, paths, logger, mon = stage.params, stage.paths, stage.logger, stage.params.monitor
-    day = draws.run_date(date, None if date is not None else flow_run.scheduled_start_time)
-    which = models or mon.models
-    if which not in (tracking.CHAMPION_ALIAS, "all"):
-        raise ValueError(f"models: expected 'champion' or 'all', got {which!r}")
-    source = source or mon.source
-    entries = tracking.monitored_models(paths.root, params, which)
-    logger.info("monitoring %s on %s (%s)", ", ".join(f"{e.model}@{e.version}" for e in entries), day, source)
-
-    simulator = None
+def _draw(params: Params, paths: ProjectPaths, source: str, day: datetime.date) -> tuple[draws.Draw, object]:
+    """The run's labelled images: ``monitor.images`` new renders of the date's seed (``source`` ``simulator``), else
+    the first ones of the recorded folder ``source``; and the simulator (None for recorded images)."""
     if source == SIMULATOR:
         simulator = make_simulator(params.simulator)
-        draw = draws.simulated_draw(simulator, params, draws.run_seed(params.seed, day, "images"), mon.images)
-    else:
-        recorded = read_recorded(paths.resolve(source), params.box, mon.images)
-        draw = draws.Draw(recorded.images, recorded.theta, recorded.names)
-    n = len(draw)
-    # each model's band at the level that keeps the run's chance alarm ≤ 1 − alarm_level over all its models
-    level = checks.model_level(mon.alarm_level, len(entries))
-    replicates = checks.band_replicates(params.evaluate.band_replicates, params.evaluate.band_level, level)
-    band = task1.calibration_band(n, mon.samples, level, replicates, params.seed)
-    results = [
-        judge_model(e, params, paths, draw, draws.run_seed(params.seed, day, e.model), band, level) for e in entries
-    ]
-    judged = {r["model"]: r["folder"] for r in results}
-    odd_test, odd_model, odd = _odd(params, paths, day, source, draw, simulator, judged, logger)
+        seed = draws.run_seed(params.seed, day, "images")
+        return draws.simulated_draw(simulator, params, seed, params.monitor.images), simulator
+    recorded = read_recorded(paths.resolve(source), params.box, params.monitor.images)
+    return draws.Draw(recorded.images, recorded.theta, recorded.names), None
 
+
+def _report(
+    params: Params,
+    day: datetime.date,
+    which: str,
+    source: str,
+    n: int,
+    entries: list[tracking.MonitoredModel],
+    results: list[dict],
+    odd: dict,
+    alarms: list[str],
+    band: float,
+    level: float,
+    start: float,
+) -> dict:
+    """The content of ``metrics.json``: the run's setting, each model's version, aliases and Task I figures with its
+    calibration alarm, the ODD check and the alarms."""
     task1_metrics = {r["model"]: r["metrics"] for r in results}
-    alarms = checks.alarms(task1_metrics, odd_test, odd_model)
-    out = paths.reports("monitoring", day.isoformat(), which)
-    report = {
+    return {
         "date": day.isoformat(),
         "models_monitored": which,
         "source": source,
         "images": n,
-        "samples": mon.samples,
-        "alarm_level": mon.alarm_level,
+        "samples": params.monitor.samples,
+        "alarm_level": params.monitor.alarm_level,
         "calibration_level": level,
         "calibration_band": band,
         "models": {
@@ -207,32 +198,24 @@ def monitor(
         "alarms": alarms,
         "seconds": time.perf_counter() - start,
     }
-    atomic_write_bytes(out / "metrics.json", json.dumps(report, indent=1).encode())
-    curves = {
-        f"{r['model']} (v{e.version})": (task1.LEVELS, np.array(r["coverage"]))
-        for r, e in zip(results, entries, strict=True)
-    }
-    figure = plots.save_figure(
-        plots.coverage_plot(
-            curves,
-            title=f"Monitoring {day}: expected coverage on {n} {'new simulated' if simulator else 'recorded'} images",
-            band=band,
-            band_label=f"{100 * level:.4g} % band of a calibrated\nmodel on {n} images",
-        ),
-        out / "coverage.png",
-    )
+
+
+def _mlflow_values(report: dict, entries: list[tracking.MonitoredModel]) -> dict[str, float]:
+    """The run's MLflow metrics: each model's figures (also under each alias it holds, so that a series follows the
+    alias whatever model holds it), the ODD check's and the run's counts."""
     values = tracking.flatten_numbers(report["models"], "task1")
     for e in entries:  # the series that follow an alias whatever model holds it
         values |= tracking.flatten_numbers({alias: report["models"][e.model] for alias in e.aliases}, "task1")
-    values |= tracking.flatten_numbers({k: v for k, v in odd.items() if k != "threshold"}, "odd")
-    values |= {"alarms": len(alarms), "images": n, "samples": mon.samples}
-    values |= {"calibration_band": band, "calibration_level": level}
-    run_name = f"monitor-{day.isoformat()}" + ("" if which == tracking.CHAMPION_ALIAS else f"-{which}")
-    tags = {"pidc.models_monitored": which, "pidc.source": source, "pidc.prefect_flow_run": str(flow_run.id or "")}
-    run_id = tracking.log_monitoring(
-        paths.root, mon.experiment, run_name, day, entries, values, [out / "metrics.json", figure], alarms, tags
-    )
-    for m, v in task1_metrics.items():
+    values |= tracking.flatten_numbers({k: v for k, v in report["odd"].items() if k != "threshold"}, "odd")
+    values |= {"alarms": len(report["alarms"]), "images": report["images"], "samples": report["samples"]}
+    values |= {"calibration_band": report["calibration_band"], "calibration_level": report["calibration_level"]}
+    return values
+
+
+def _log_summary(logger, report: dict, odd_test, odd_model) -> None:
+    """One log line per model judged, then the ODD decision's count."""
+    band, level, n = report["calibration_band"], report["calibration_level"], report["images"]
+    for m, v in report["models"].items():
         logger.info(
             "%s: calibration error %.3f (band %.3f at %.4g %% on %d images: %s), NLL %.2f, information gain %.2f nats",
             m,
@@ -254,6 +237,66 @@ def monitor(
             odd_test.low,
             odd_test.high,
         )
+
+
+@flow(name="monitor", log_prints=True)
+def monitor(
+    params_path: str = "params.yaml", date: str | None = None, models: str | None = None, source: str | None = None
+) -> dict:
+    """Judge the registered models on the new draws of the run's date; write reports/monitoring/<date>/ and an MLflow
+    run; fail on an alarm. ``models`` and ``source`` override ``monitor.models`` and ``monitor.source``."""
+    start = time.perf_counter()
+    stage = open_stage(params_path)
+    params, paths, logger, mon = stage.params, stage.paths, stage.logger, stage.params.monitor
+    day = draws.run_date(date, None if date is not None else flow_run.scheduled_start_time)
+    which = models or mon.models
+    if which not in (tracking.CHAMPION_ALIAS, "all"):
+        raise ValueError(f"models: expected 'champion' or 'all', got {which!r}")
+    source = source or mon.source
+    entries = tracking.monitored_models(paths.root, params, which)
+    logger.info("monitoring %s on %s (%s)", ", ".join(f"{e.model}@{e.version}" for e in entries), day, source)
+    draw, simulator = _draw(params, paths, source, day)
+    n = len(draw)
+    # each model's band at the level that keeps the run's chance alarm ≤ 1 − alarm_level over all its models
+    level = checks.model_level(mon.alarm_level, len(entries))
+    replicates = checks.band_replicates(params.evaluate.band_replicates, params.evaluate.band_level, level)
+    band = task1.calibration_band(n, mon.samples, level, replicates, params.seed)
+    results = [
+        judge_model(e, params, paths, draw, draws.run_seed(params.seed, day, e.model), band, level) for e in entries
+    ]
+    judged = {r["model"]: r["folder"] for r in results}
+    odd_test, odd_model, odd = _odd(params, paths, day, source, draw, simulator, judged, logger)
+    alarms = checks.alarms({r["model"]: r["metrics"] for r in results}, odd_test, odd_model)
+    out = paths.reports("monitoring", day.isoformat(), which)
+    report = _report(params, day, which, source, n, entries, results, odd, alarms, band, level, start)
+    atomic_write_bytes(out / "metrics.json", json.dumps(report, indent=1).encode())
+    curves = {
+        f"{r['model']} (v{e.version})": (task1.LEVELS, np.array(r["coverage"]))
+        for r, e in zip(results, entries, strict=True)
+    }
+    figure = plots.save_figure(
+        plots.coverage_plot(
+            curves,
+            title=f"Monitoring {day}: expected coverage on {n} {'new simulated' if simulator else 'recorded'} images",
+            band=band,
+            band_label=f"{100 * level:.4g} % band of a calibrated\nmodel on {n} images",
+        ),
+        out / "coverage.png",
+    )
+    run_name = f"monitor-{day.isoformat()}" + ("" if which == tracking.CHAMPION_ALIAS else f"-{which}")
+    tags = {"pidc.models_monitored": which, "pidc.source": source, "pidc.prefect_flow_run": str(flow_run.id or "")}
+    run_id = tracking.log_monitoring(
+        paths.root,
+        mon.experiment,
+        run_name,
+        day,
+        entries,
+        _mlflow_values(report, entries),
+        [out / "metrics.json", figure],
+        alarms,
+        tags,
+    )
+    _log_summary(logger, report, odd_test, odd_model)
     logger.info("report %s, MLflow run %s (%s)", out, run_id, mon.experiment)
     if alarms:
         raise checks.MonitoringAlarm(f"{len(alarms)} alarm(s) on {day}: " + "; ".join(alarms) + f" (report: {out})")

@@ -158,8 +158,8 @@ def wait_with_progress(
 
 def batches(items: Sequence[Any], size: int) -> list[list[Any]]:
     """``items`` in order, in lists of ``size`` (the last may be shorter): one Prefect task per list spares the
-    per-task bookkeeping (a task run and its states on the API: 0.1–0.3 s of wall time each, BENCHMARKS.md "Fewer, larger
-    tasks")."""
+    per-task bookkeeping (a task run and its states on the API: 0.1–0.3 s of wall time each,
+    docs/studies/fewer-larger-tasks.md)."""
     if size < 1:
         raise ValueError(f"batch size must be >= 1, got {size}")
     return [list(items[i : i + size]) for i in range(0, len(items), size)]

@@ -18,10 +18,9 @@ import os
 import numpy as np
 from prefect import flow, task
 
-from components import plots
 from components.core.files import atomic_write_bytes
 from components.domains import task2 as task2_
-from components.domains.absolute import Domain
+from components.domains import task2_report
 from components.export.lookup import load_registered, read_champion
 from components.simulate.base import make_simulator
 from flows import tracking
@@ -35,35 +34,27 @@ def render_bag(params_path: str) -> tuple[np.ndarray, np.ndarray]:
     return task2_.render_bag(params, make_simulator(params.simulator))
 
 
-def _note(row: dict, floor: float, calibrated: float, interval: dict | None = None) -> str:
-    """A parameter's panel title: W₁ estimate→truth against the prior's and their ratio, the ratios of the mixture of
-    calibrated posteriors of the same widths (``calibrated``) and of the posteriors moved onto their truths (``floor``;
-    :func:`components.domains.task2.width_floor` at s = 1), the marginal HDR; for a varying parameter (``interval``:
-    its row of ``width_floor.interval.mixture_minus_calibrated``) the mixture's ratio minus the calibrated one's with its
-    95 % interval."""
-    unit = "°" if row["unit"] == "deg" else row["unit"]
-    return (
-        f"W₁ to the truth {row['wasserstein_estimate']:.3g} {unit} (prior {row['wasserstein_prior']:.3g} {unit}): "
-        f"ratio {row['wasserstein_ratio']:.2f}\nthese widths, calibrated: {calibrated:.2f}; on the truths: {floor:.2f}\n"
-        + (
-            ""
-            if interval is None
-            else "minus the calibrated: {:+.2f}, 95 % [{:+.2f}, {:+.2f}]\n".format(
-                interval["difference"], interval["low"], interval["high"]
-            )
-        )
-        + f"HDR {row['hdr_width']:.3g} {unit} wide, holds {100 * row['true_mass_in_hdr']:.0f} % of the truth"
-    )
-
-
-def _description(metrics: dict, model: str) -> str:
-    """The Task II run's description: its headline figures."""
-    energy = metrics["energy_distance_sq"]["all"]
-    return (
-        f"Task II with {model}, {metrics['estimate']} estimate: energy distance² estimate→truth "
-        f"{energy['estimate_to_truth']:.4f} vs prior→truth "
-        f"{energy['prior_to_truth']:.4f} (ratio {energy['ratio']:.3f}); {100 * metrics['true_mass_in_hdr']:.1f} % of "
-        "the true mass inside the estimate's HDR. Per parameter: metrics `task2.parameters.<parameter>.*`."
+def _log_summary(logger, metrics: dict, params, model_name: str) -> None:
+    """The stage's last log line: the HDR mass, the energy distances and the varying parameters' W₁ ratios."""
+    t = params.task2
+    energy, floor = metrics["energy_distance_sq"]["all"], metrics["width_floor"]
+    varying = [n for n in metrics["parameters"] if n not in t.fixed]
+    logger.info(
+        "task2 (%s, %s estimate): %.1f %% of the true mass inside the estimate's %.0f %% HDR; energy distance² (U) "
+        "%.4f, prior %.4f, ratio %.3f (truth vs truth %.4f); W₁ to the truth over the prior's: %s",
+        model_name,
+        t.estimate,
+        100 * metrics["true_mass_in_hdr"],
+        100 * t.hdr_level,
+        energy["estimate_to_truth"],
+        energy["prior_to_truth"],
+        energy["ratio"],
+        energy["truth_to_truth"],
+        ", ".join(
+            f"{n} {metrics['parameters'][n]['wasserstein_ratio']:.3f} (calibrated posteriors of its widths "
+            f"{floor['calibrated']['1'][n]:.3f})"
+            for n in varying
+        ),
     )
 
 
@@ -79,74 +70,11 @@ def task2(params_path: str = "params.yaml") -> dict:
     model = load_registered(folder or t.model, paths.registry, threads=os.cpu_count() or 1)
     theta, images = render_bag(str(stage.params_file))
     contexts = model.posterior.context(model.inputs(images))  # the embedding runs once per image
-    domain = Domain(model.posterior.on_context(), contexts)  # equally weighted bag
-    characterization, how = task2_.characterize(domain, params)
-    metrics, estimate, truth, prior = task2_.task2_metrics(characterization, params, model.name)
-    metrics = {"estimate": t.estimate, **metrics}
-    mixture = None
-    if t.estimate != "mixture":
-        metrics["deconvolution"] = how
-        metrics["mixture"], mixture, _, _ = task2_.task2_metrics(domain, params, model.name)
-        del metrics["mixture"]["model"]
-    metrics["width_floor"] = floor = task2_.width_floor(domain.posterior, contexts, theta, params)
-
-    labels = ("ground truth P_D(W)", f"estimate P̂_D(W), {t.estimate}")
-    figures = [
-        plots.save_figure(
-            plots.corner_compare(truth, estimate, labels=labels, box=params.box),
-            out / "plots" / "corner-truth-vs-estimate.png",
-        ),
-        plots.save_figure(
-            plots.corner_compare(truth, estimate, labels=labels, box=params.box, overlay=True),
-            out / "plots" / "corner-overlay.png",
-        ),
-        plots.save_figure(
-            plots.marginals_overlay(
-                truth,
-                estimate,
-                prior,
-                box=params.box,
-                notes=[
-                    _note(
-                        r,
-                        floor["wasserstein_ratio"]["1"][n],
-                        floor["calibrated"]["1"][n],
-                        floor["interval"]["mixture_minus_calibrated"].get(n),
-                    )
-                    for n, r in metrics["parameters"].items()
-                ],
-                title=f"Task II ({model.name}): marginals of the truth, the {t.estimate} estimate and the prior "
-                f"({100 * t.hdr_level:.0f} % HDR)",
-                reference=mixture,
-            ),
-            out / "plots" / "marginals.png",
-        ),
-    ]
-    if t.estimate != "mixture":
-        figures.append(
-            plots.save_figure(
-                plots.held_out_curve(
-                    np.asarray(how["held_out_log_likelihood"]),
-                    how["steps"],
-                    title=f"Task II ({model.name}): how far to deconvolve ({t.deconvolution.folds}-fold cross-validation)",
-                ),
-                out / "plots" / "deconvolution.png",
-            )
-        )
-    shown = min(48, t.images)
-    figures.append(
-        plots.save_figure(
-            plots.image_grid(images[:shown], ncols=8, title=f"Task II bag: {shown} of {t.images} images"),
-            out / "plots" / "bag.png",
-        )
-    )
-    atomic_write_bytes(out / "metrics.json", json.dumps(metrics, indent=1).encode())
+    bag = task2_.score_bag(model.posterior, contexts, theta, params, model.name)
+    figures = task2_report.write_plots(out / "plots", bag, images, params, model.name)
+    atomic_write_bytes(out / "metrics.json", json.dumps(bag.metrics, indent=1).encode())
     # MLflow: the held-out curve as one metric over the EM steps, not one metric per step
-    flat, series = metrics, {}
-    if t.estimate != "mixture":
-        curve = how["held_out_log_likelihood"]
-        flat = {**metrics, "deconvolution": {k: v for k, v in how.items() if k != "held_out_log_likelihood"}}
-        series = {"task2.deconvolution.held_out_log_likelihood": dict(enumerate(curve))}
+    flat, series = task2_report.mlflow_values(bag, t.estimate)
     tracking.log_domain_task(
         paths.root,
         params.train.experiment,
@@ -156,28 +84,10 @@ def task2(params_path: str = "params.yaml") -> dict:
         series,
         [out / "metrics.json", *figures],
         {"pidc.model_source": tracking.model_source(params, t.model)},
-        _description(metrics, model.name),
+        task2_report.description(bag.metrics, model.name),
     )
-    energy = metrics["energy_distance_sq"]["all"]
-    varying = [n for n in metrics["parameters"] if n not in t.fixed]
-    stage.logger.info(
-        "task2 (%s, %s estimate): %.1f %% of the true mass inside the estimate's %.0f %% HDR; energy distance² (U) "
-        "%.4f, prior %.4f, ratio %.3f (truth vs truth %.4f); W₁ to the truth over the prior's: %s",
-        model.name,
-        t.estimate,
-        100 * metrics["true_mass_in_hdr"],
-        100 * t.hdr_level,
-        energy["estimate_to_truth"],
-        energy["prior_to_truth"],
-        energy["ratio"],
-        energy["truth_to_truth"],
-        ", ".join(
-            f"{n} {metrics['parameters'][n]['wasserstein_ratio']:.3f} (calibrated posteriors of its widths "
-            f"{floor['calibrated']['1'][n]:.3f})"
-            for n in varying
-        ),
-    )
-    return metrics
+    _log_summary(stage.logger, bag.metrics, params, model.name)
+    return bag.metrics
 
 
 def main(argv: list[str] | None = None) -> None:

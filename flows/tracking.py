@@ -646,7 +646,7 @@ def describe_grid(
         experiment.experiment_id,
         DESCRIPTION,
         f"{text}\n\nOne run per model under the grid run `grid-{key}` (expand it); figures of all models in its "
-        'artifacts `task1/`. README: "Compare the models in MLflow".',
+        'artifacts `task1/`. docs/monitoring.md: "Compare the models in MLflow".',
     )
     for f in files:
         client.log_artifact(parent, str(f), artifact_path="task1")

@@ -1,4 +1,4 @@
-"""Look at the models in the MLflow UI as a person would: headless Chromium, the clicks of the README's "Compare the
+"""Look at the models in the MLflow UI as a person would: headless Chromium, the clicks of docs/monitoring.md's "Compare the
 models in MLflow", a screenshot, and the runs table read back from the page.
 
     python scripts/mlflow_screenshot.py --size 1920x720 --out docs/mlflow-models.png  # over ./mlflow.db
@@ -22,7 +22,7 @@ And for the registered model (:func:`registered_model_page`): **Model training**
 versions, one per model (version tag and description name the model), the aliases ``@champion`` and ``@challenger``
 on theirs.
 
-Used by ``tests/test_mlflow_ui.py`` (on the micro pipeline's store) and for the README's ``docs/mlflow-models.png``.
+Used by ``tests/test_mlflow_ui.py`` (on the micro pipeline's store) and for ``docs/mlflow-models.png`` (docs/monitoring.md).
 """
 
 from __future__ import annotations
@@ -368,7 +368,7 @@ def compare_models(
     browser: str | None = None,
     size: tuple[int, int] = SIZE,
 ) -> Look:
-    """Open ``url`` (an MLflow server) in headless Chromium, do the README's clicks on ``experiment`` (see the module
+    """Open ``url`` (an MLflow server) in headless Chromium, do docs/monitoring.md's clicks on ``experiment`` (see the module
     docstring), screenshot the page to ``out`` (when given) and return what it showed."""
     with _page(browser, size) as page:
         # 1. the experiments list → the experiment (its GenAI overview, with a "Detect Issues" hint on top)

@@ -19,7 +19,7 @@ if [ "$(cat .venv/.pidc-setup 2>/dev/null)" != "$stamp" ]; then
   pipq install -q -c constraints.txt "torch==2.13.0"
   # the rest with uv, at the same exact versions: ~10 s where pip takes ~3 min (an identical `pip freeze`)
   pipq install -q -c constraints.txt uv
-  uv pip install -q --python .venv/bin/python -c constraints.txt -e ".[test,carla,pretrained]"
+  uv pip install -q --python .venv/bin/python -c constraints.txt -e ".[test,carla,pretrained,docs]"
   python -m pip check
   echo "$stamp" > .venv/.pidc-setup
 fi

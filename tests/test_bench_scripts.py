@@ -15,15 +15,15 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_conditional_coverage import MASS, coverage_cells  # noqa: E402
-from benchmarks.bench_levers import mirror_map, parse_setting, tiny_columns  # noqa: E402
-from benchmarks.bench_puddles import LEVELS, ideal_errors  # noqa: E402
-from benchmarks.bench_rain import exact_features, knn_error  # noqa: E402
-from benchmarks.bench_rain_pool import calibration_of  # noqa: E402
-from benchmarks.bench_resolution import paired_difference  # noqa: E402
-from benchmarks.bench_resolution_training import render, render_resized  # noqa: E402
-from benchmarks.bench_scale import SMALL_WIDTHS, WIDTHS, FullResolutionCNN, _parse  # noqa: E402
 from benchmarks.bench_splits import fresh_features, summarize  # noqa: E402
+from benchmarks.studies.bench_conditional_coverage import MASS, coverage_cells  # noqa: E402
+from benchmarks.studies.bench_levers import mirror_map, parse_setting, tiny_columns  # noqa: E402
+from benchmarks.studies.bench_puddles import LEVELS, ideal_errors  # noqa: E402
+from benchmarks.studies.bench_rain import exact_features, knn_error  # noqa: E402
+from benchmarks.studies.bench_rain_pool import calibration_of  # noqa: E402
+from benchmarks.studies.bench_resolution import paired_difference  # noqa: E402
+from benchmarks.studies.bench_resolution_training import render, render_resized  # noqa: E402
+from benchmarks.studies.bench_scale import SMALL_WIDTHS, WIDTHS, FullResolutionCNN, _parse  # noqa: E402
 from components.core.config import load_params  # noqa: E402
 from components.core.weather import PREDICTED  # noqa: E402
 from components.features.backbones import get_backbone  # noqa: E402
@@ -329,7 +329,7 @@ def _uses_pidc(path: Path) -> bool:
     return "from components" in text or "import components" in text or "from flows" in text
 
 
-_SCRIPTS = sorted(p for d in ("benchmarks", "scripts") for p in (ROOT / d).glob("*.py"))
+_SCRIPTS = sorted(p for d in ("benchmarks", "benchmarks/studies", "scripts") for p in (ROOT / d).glob("*.py"))
 
 
 @pytest.mark.parametrize("script", [p.relative_to(ROOT).as_posix() for p in _SCRIPTS if _uses_pidc(p)])

@@ -107,7 +107,7 @@ def test_the_rule_and_the_evaluation_size_are_validated_params():
         if ok:
             assert parse_params(q).evaluate.images == value
         else:
-            with pytest.raises(ConfigError, match=r"evaluate\.images: .*positive number of test images or 'all'"):
+            with pytest.raises(ConfigError, match=r"evaluate\.images: .*positive integer or 'all'"):
                 parse_params(q)
     q = copy.deepcopy(p)
     q["evaluate"]["images"] = 2001

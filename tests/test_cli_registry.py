@@ -183,7 +183,7 @@ def test_characterize_a_folder_with_bad_images(world, capsys, tmp_path):
     assert caveats == [
         "pidc characterize: note: cues-tiny learned from 32×32 renders; images of 48×32 are area-resized, and the "
         "calibration measured in the pipeline does not cover them: the simulator's own renders made larger and "
-        'resized gave overconfident posteriors (BENCHMARKS.md, "Images of another resolution")'
+        "resized gave overconfident posteriors (docs/studies/other-resolutions.md)"
     ]
     errors = [line for line in err.splitlines() if line.startswith("pidc characterize: skipped")]
     assert errors == [
@@ -332,7 +332,7 @@ def test_resize_caveat_once_per_command_and_for_cards_that_do_not_name_their_ima
     assert code == 0 and caveats == [
         "pidc relate: note: old-card learned from renders of a size its card does not name (re-export it); images of "
         "32×32 are area-resized, and the calibration measured in the pipeline does not cover them: the simulator's own "
-        'renders made larger and resized gave overconfident posteriors (BENCHMARKS.md, "Images of another resolution")'
+        "renders made larger and resized gave overconfident posteriors (docs/studies/other-resolutions.md)"
     ]
     code, _, err = run(capsys, "characterize", world["clear"], "--registry", world["registry"], "--samples", 100)
     assert code == 0 and "learned from" not in err
@@ -376,8 +376,8 @@ def test_the_command_line_notes_images_outside_a_camera_models_sizes(world, tmp_
     assert code == 0 and caveats == [
         "pidc characterize: note: camera learned from renders 40–64 pixels high, area-resized to 32×32; images of "
         "80×80 are outside them; images of 32×32 are taken as frames already shrunk to it, not as the renderer's own "
-        "renders of that size: the calibration measured in the pipeline covers only what it learned (BENCHMARKS.md, "
-        '"Camera-like renders in the pipeline")'
+        "renders of that size: the calibration measured in the pipeline covers only what it learned "
+        "(docs/studies/camera-renders.md)"
     ]
 
 
@@ -684,7 +684,7 @@ def test_console_script(world, tmp_path):
 
 
 def test_relate_defaults_are_the_task3_stage_defaults():
-    """`pidc relate` relates folders as the task3 stage does by default (params.yaml), whose figures the README reports."""
+    """`pidc relate` relates folders as the task3 stage does by default (params.yaml), whose figures docs/results.md reports."""
     from components.cli.relate import RELATE_DEFAULTS
     from components.core.config import load_params
 

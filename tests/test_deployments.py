@@ -1,4 +1,4 @@
-"""The scheduled deployments of prefect.yaml end to end, as the README runs them by hand: a real Prefect server,
+"""The scheduled deployments of prefect.yaml end to end, as docs/monitoring.md runs them by hand: a real Prefect server,
 a `process` work pool and a worker, `prefect deploy` from the file, runs triggered with `prefect deployment run` and
 executed by the worker in a project built with `dvc repro`, and the schedules the server registered.
 
@@ -225,7 +225,7 @@ def test_prefect_yaml_deployments_monitor_on_a_process_worker(monitored_project,
             start_new_session=True,
         )
     try:
-        # deploy as the README does, from the project root with PIDC_PROJECT set
+        # deploy as docs/monitoring.md does, from the project root with PIDC_PROJECT set
         _prefect(["deploy", "--all", "--no-prompt"], project, {**env, "PIDC_PROJECT": str(project)})
 
         with httpx.Client(base_url=prefect_server, timeout=30) as api:
@@ -251,7 +251,7 @@ def test_prefect_yaml_deployments_monitor_on_a_process_worker(monitored_project,
                 assert schedules == [(s["cron"], s["timezone"], s.get("active", True)) for s in want["schedules"]]
                 assert schedules and all(cron and tz for cron, tz, _ in schedules)
 
-            # by hand, as the README shows; the worker runs them side by side
+            # by hand, as docs/monitoring.md shows; the worker runs them side by side
             triggers = {
                 "nightly": ["monitor/nightly"],
                 "weekly": ["monitor/weekly"],

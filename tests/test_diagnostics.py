@@ -97,7 +97,7 @@ def test_calibration_band_is_the_quantile_of_a_calibrated_models_error() -> None
     band = calibration_band(N_OBS, N_SAMPLES, DEFAULT_LEVELS, seeding.rng(3, "test", "band"))
     assert calibration_error(exact, DEFAULT_LEVELS) <= band
     assert calibration_error(narrow, DEFAULT_LEVELS) > 5 * band and calibration_error(wide, DEFAULT_LEVELS) > 5 * band
-    with pytest.raises(ValueError, match="images must be an integer >= 1"):
+    with pytest.raises(ValueError, match="images must be a positive integer"):
         calibration_band(0, 10, None, seeding.rng(0))
     with pytest.raises(ValueError, match="quantile must be in"):
         calibration_band(10, 10, None, seeding.rng(0), quantile=1.0)

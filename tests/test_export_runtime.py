@@ -296,7 +296,7 @@ def test_clear_errors(exported, tmp_path):
         runtime.log_prob(_theta(3, seed=1), x)
     with pytest.raises(ValueError, match="NaN"):
         runtime.context(np.full_like(x, np.nan))
-    with pytest.raises(ValueError, match="n must be an integer >= 1"):
+    with pytest.raises(ValueError, match="n must be a positive integer"):
         runtime.sample(x, 0, seed=0)
     _, ensemble, _ = exported["ensemble"]
     with pytest.raises(ValueError, match="members"):

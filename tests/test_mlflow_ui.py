@@ -1,6 +1,6 @@
 """The MLflow UI as a person looks at it: a real `mlflow server` on 127.0.0.1 over the finished micro pipeline's
-store, headless Chromium doing the clicks of the README's "Compare the models in MLflow"
-(scripts/mlflow_screenshot.py, which also makes the README's screenshot). The model runs, their headline metric
+store, headless Chromium doing the clicks of docs/monitoring.md's "Compare the models in MLflow"
+(scripts/mlflow_screenshot.py, which also makes the screenshot of docs/monitoring.md). The model runs, their headline metric
 columns (with the values of reports/task1/metrics.json) and the champion (reports/task1/champion.json: the tag
 ``pidc.role`` and the registered model's alias) must be on the page. The screenshots stay as CI artifacts:
 reports/ci/mlflow-ui.png and reports/ci/mlflow-registry.png.

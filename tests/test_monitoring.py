@@ -153,7 +153,7 @@ def test_model_level_and_band_replicates():
     assert checks.band_replicates(2000, 0.95, 0.99) == 10000  # 100 replicates above the band, as at 95 %
     assert checks.band_replicates(2000, 0.95, 0.9) == 2000  # never fewer
     for bad in (0, 1.5, True):
-        with pytest.raises(ValueError, match="models must be an integer >= 1"):
+        with pytest.raises(ValueError, match="models must be a positive integer"):
             checks.model_level(0.99, bad)
     with pytest.raises(ValueError, match=r"level must be in \(0, 1\)"):
         checks.model_level(1.0, 2)
@@ -254,7 +254,7 @@ def test_grown_in_odd_gaps_raise_the_false_alarm_alarm():
 
 def test_the_false_alarm_interval_refuses_bad_arguments():
     for bad, message in (
-        ({"n": 0}, "n must be a positive number of targets, got 0"),
+        ({"n": 0}, r"n must be a positive integer \(a number of targets\), got 0"),
         ({"alpha": 1.0}, r"alpha must be in \(0, 1\), got 1.0"),
         ({"level": 1.5}, r"level must be in \(0, 1\), got 1.5"),
         ({"calibration_targets": 20}, "give both calibration_targets and rank, or neither"),

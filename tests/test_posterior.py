@@ -538,7 +538,7 @@ def test_without_patience_every_epoch_runs_and_the_best_weights_are_kept() -> No
         again = npe_loss(m, torch.tensor(thv), torch.tensor(xv))
     assert float(again.loss) == pytest.approx(hist.best_val_loss, rel=1e-4)
     for bad in (0, -1, 2.5, True):
-        with pytest.raises(ValueError, match=r"TrainingConfig.patience must be an integer >= 1 or None"):
+        with pytest.raises(ValueError, match=r"TrainingConfig.patience must be a positive integer or None"):
             TrainingConfig(patience=bad)
 
 

@@ -93,7 +93,7 @@ def test_bins_are_closed_on_the_left_and_the_last_on_both_sides_and_empty_bins_a
 def test_bad_inputs_are_named():
     draws, truth = _calibrated(lambda mu: np.full_like(mu, 5.0))
     scores = marginals.marginal_scores(draws[:10], truth[:10], BOX)
-    with pytest.raises(ValueError, match="positive whole number of bins, got 0"):
+    with pytest.raises(ValueError, match="number of bins must be a positive integer, got 0"):
         profile.truth_profile(scores, truth[:10], BOX, 0)
     with pytest.raises(ValueError, match=r"truth must have the scores' shape \(10, 2\), got \(9, 2\)"):
         profile.truth_profile(scores, truth[:9], BOX, 5)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.bench_regime import with_flows_of
+from benchmarks.studies.bench_regime import with_flows_of
 from components.core import seeding
 from components.posterior.model import NPE, FlowConfig
 from components.posterior.regime import RegimeTemperature, fit_gate

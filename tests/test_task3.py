@@ -218,8 +218,9 @@ def test_the_metrics_name_the_target_kind_of_every_figure(synthetic):
 
 
 def test_the_stage_summary_names_the_lowest_auc_from_eta_03_on(synthetic):
-    """The task3 stage's log line: each AUC below η = 0.3, then the lowest from there on (#14's target), with its η."""
-    from flows.task3 import _auc_summary, _auc_text
+    """The task3 stage's log line: each AUC below η = 0.3, then the lowest from there on (the target), with its η."""
+    from components.domains.task3_report import auc_summary as _auc_summary
+    from components.domains.task3_report import auc_text as _auc_text
 
     eta = synthetic[-1]["eta"]
     text = _auc_summary(eta, "fresh")

@@ -12,6 +12,7 @@ import math
 import sys
 from collections.abc import Collection
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -138,9 +139,55 @@ def _skipped_weight(given: dict[str, float], relative: dict[str, float], skipped
     }
 
 
+def _weighted_paths(
+    weights_csv: Path | None, folder: Path, paths: list[Path]
+) -> tuple[list[Path], dict[str, float] | None, dict[str, float]]:
+    """``(paths to read, relative weights by file name, the weights as the file gives them)``: with ``--weights``
+    the images it lists with a positive weight (a note says how many images it leaves out); without, ``paths``, None
+    and no weights."""
+    if weights_csv is None:
+        return paths, None, {}
+    by_name = {p.name: p for p in paths}
+    try:
+        given = read_weights_csv(weights_csv, by_name)  # as the file gives them, to say what skipped images weighed
+        weights = _relative(given)
+    except ValueError as e:
+        raise CLIError(f"--weights {e}") from None
+    missing = [name for name in weights if name not in by_name]
+    if missing:
+        raise CLIError(
+            f"--weights {weights_csv}: {len(missing)} listed image(s) not found among the images of "
+            f"{folder}, e.g. {missing[0]!r}"
+        )
+    ignored = len(paths) - len(weights)
+    if ignored:
+        print(
+            f"pidc domain: note: {ignored} image(s) of {folder} are not in {weights_csv}: left out",
+            file=sys.stderr,
+        )
+    return [by_name[name] for name in weights if weights[name] > 0], weights, given
+
+
+def _weighted_domain(
+    args: argparse.Namespace, posterior: Any, bag: Any, weights: dict[str, float] | None
+) -> tuple[Any, str]:
+    """``(the domain of the bag's images, how they are weighted)``: by ``weights``, as an exponentially decaying
+    stream in file-name order (``--decay``), or equally."""
+    from components.domains.absolute import Domain, ExponentialFilter
+
+    if weights is not None:
+        return Domain(posterior, bag.x, [weights[p.name] for p in bag.paths]), f"weights from {args.weights}"
+    if args.decay is not None:
+        stream = ExponentialFilter(posterior, decay=args.decay)
+        for i in range(len(bag.paths)):
+            stream.update(bag.x[i : i + 1])
+        how = f"a stream in file-name order, weight × {args.decay:g} per image of age (newest last)"
+        return stream.domain(), how
+    return Domain(posterior, bag.x), "equal weights"
+
+
 def cmd_domain(args: argparse.Namespace) -> int:
     """The folder's images as one :class:`components.domains.absolute.Domain`; skipped images do not count as stream steps."""
-    from components.domains.absolute import Domain, ExponentialFilter
     from components.evaluate.summary import format_summary, summarize
 
     n = check_samples(args.samples)
@@ -154,28 +201,7 @@ def cmd_domain(args: argparse.Namespace) -> int:
     outputs = [("--json", args.json), ("--corner", args.corner)]
     check_not_input(outputs, paths)
     check_outputs(outputs)
-    weights: dict[str, float] | None = None
-    given: dict[str, float] = {}  # the weights as the file gives them, to say what the skipped images weighed
-    if args.weights is not None:
-        by_name = {p.name: p for p in paths}
-        try:
-            given = read_weights_csv(args.weights, by_name)
-            weights = _relative(given)
-        except ValueError as e:
-            raise CLIError(f"--weights {e}") from None
-        missing = [name for name in weights if name not in by_name]
-        if missing:
-            raise CLIError(
-                f"--weights {args.weights}: {len(missing)} listed image(s) not found among the images of "
-                f"{folder}, e.g. {missing[0]!r}"
-            )
-        ignored = len(paths) - len(weights)
-        if ignored:
-            print(
-                f"pidc domain: note: {ignored} image(s) of {folder} are not in {args.weights}: left out",
-                file=sys.stderr,
-            )
-        paths = [by_name[name] for name in weights if weights[name] > 0]
+    paths, weights, given = _weighted_paths(args.weights, folder, paths)
     model = load_model(args)
     name = folder_name(folder)
     log = ReadLog("domain")
@@ -184,18 +210,7 @@ def cmd_domain(args: argparse.Namespace) -> int:
     lost = _skipped_weight(given, weights, [Path(p).name for p, _ in log.skipped]) if weights else None
     if lost is not None:
         print(f"pidc domain: note: {lost['line']}", file=sys.stderr)
-    if weights is not None:
-        how = f"weights from {args.weights}"
-        domain = Domain(model.posterior, bag.x, [weights[p.name] for p in bag.paths])
-    elif args.decay is not None:
-        how = f"a stream in file-name order, weight × {args.decay:g} per image of age (newest last)"
-        stream = ExponentialFilter(model.posterior, decay=args.decay)
-        for i in range(len(bag.paths)):
-            stream.update(bag.x[i : i + 1])
-        domain = stream.domain()
-    else:
-        how = "equal weights"
-        domain = Domain(model.posterior, bag.x)
+    domain, how = _weighted_domain(args, model.posterior, bag, weights)
     draws = domain.sample(n, derive_seed(seed, "domain"))
     box = model.posterior.box
     size = _effective_size(domain.weights)

@@ -44,6 +44,12 @@ def _model_options(p: argparse.ArgumentParser) -> None:
 
 def add_model_commands(sub: Any) -> None:
     """Add ``characterize``, ``domain`` and ``relate`` to the ``pidc`` subcommands ``sub``."""
+    _add_characterize(sub)
+    _add_domain(sub)
+    _add_relate(sub)
+
+
+def _add_characterize(sub: Any) -> None:
     p = sub.add_parser("characterize", help="per image: the posterior's median and 68.27 %% HDI per parameter")
     p.add_argument("images", nargs="+", metavar="IMAGE_OR_FOLDER", help="image files and/or folders of images")
     _model_options(p)
@@ -62,6 +68,8 @@ def add_model_commands(sub: Any) -> None:
     )
     p.set_defaults(func=cmd_characterize)
 
+
+def _add_domain(sub: Any) -> None:
     p = sub.add_parser("domain", help="a folder of images as one weighted bag: the domain's weather distribution")
     p.add_argument("folder", metavar="FOLDER")
     how = p.add_mutually_exclusive_group()
@@ -90,6 +98,8 @@ def add_model_commands(sub: Any) -> None:
     )
     p.set_defaults(func=cmd_domain)
 
+
+def _add_relate(sub: Any) -> None:
     p = sub.add_parser("relate", help="a target folder as a mixture of source folders, and the out-of-ODD verdict")
     p.add_argument("target", metavar="TARGET_FOLDER")
     p.add_argument(

@@ -377,7 +377,7 @@ def _resize_caveat(model: Any, sizes: set[tuple[int, int]], converted: bool) -> 
             return None
         return (
             f"{model.name} learned from {model.learned_from}; {'; '.join(notes)}: the calibration measured in the "
-            'pipeline covers only what it learned (BENCHMARKS.md, "Camera-like renders in the pipeline")'
+            "pipeline covers only what it learned (docs/studies/camera-renders.md)"
         )
     if not other:
         return None
@@ -385,7 +385,7 @@ def _resize_caveat(model: Any, sizes: set[tuple[int, int]], converted: bool) -> 
     return (
         f"{model.name} learned from {learned}; images of {shown} are area-resized, and the calibration measured in "
         "the pipeline does not cover them: the simulator's own renders made larger and resized gave overconfident "
-        'posteriors (BENCHMARKS.md, "Images of another resolution")'
+        "posteriors (docs/studies/other-resolutions.md)"
     )
 
 

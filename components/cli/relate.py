@@ -12,6 +12,7 @@ import math
 import sys
 import warnings
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +39,7 @@ __all__ = ["RELATE_DEFAULTS", "cmd_relate"]
 
 #: ``pidc relate``'s defaults: the ``task3`` stage's defaults in params.yaml (``task3.n_points``, ``smoothing``,
 #: ``draws_per_image``, ``bandwidth_scale``; a test holds them equal), so that the command relates folders as the stage
-#: whose figures the README reports (BENCHMARKS.md "Task III: the characterization")
+#: whose figures docs/results.md reports (docs/studies/task3-characterization.md)
 RELATE_DEFAULTS: dict[str, Any] = {"n_points": 64, "smoothing": "scott", "draws_per_image": 64, "bandwidth_scale": 3.0}
 #: relate refuses a verdict when the calibrated threshold (a relative gap) is within this of 1: where the folders'
 #: densities do not overlap, every relative gap is 1 (δ = mean(b²): the sources are ≈ 0 at the target's points), so
@@ -69,7 +70,7 @@ def _print_differences(
 ) -> None:
     """``pidc relate``'s table of where the target differs from the fitted mixture: per parameter the medians, W₁ and
     its in-ODD level (:mod:`components.domains.difference`), largest W₁ / level first; with an OUTSIDE verdict a * on
-    the parameters beyond their level (what the alarm is about; README "Where the target differs")."""
+    the parameters beyond their level (what the alarm is about; docs/cli.md, "Where the target differs")."""
     print(
         f"where the target differs from the fitted mixture Σ λ̂ₖ sourceₖ (marginals of {draws_per_image} "
         "posterior draws an image):\n"
@@ -187,29 +188,10 @@ def cmd_relate(args: argparse.Namespace) -> int:
     image, with ``--bandwidth-scale`` × the sources' Scott bandwidth) or by the paper's exact mixture (``none``:
     :class:`components.domains.absolute.Domain`); the verdict is
     :func:`components.domains.relative.calibrate_on_sources`'s detector on :attr:`Relation.relative_gap`."""
-    from components.domains.absolute import Domain
-    from components.domains.difference import InOddDifferences, parameter_differences
-    from components.domains.kernel import KernelDomain, sources_bandwidth
-    from components.domains.relative import calibrate_on_sources, relate
-
     seed = check_seed(args.seed)
     folders = [check_folder(Path(f), "relate") for f in (args.target, *args.sources)]
     _check_distinct_folders(folders)
-    k = len(args.sources)
-    if args.points < k:
-        raise CLIError(f"--points {args.points} cannot determine {k} mixture weights: need --points ≥ {k}")
-    alpha = args.false_alarm_rate
-    if not (0.0 < alpha < 1.0):
-        raise CLIError(f"--false-alarm-rate must be in (0, 1), got {alpha:g}")
-    need = math.ceil((1.0 - alpha) / alpha - 1e-9)
-    if args.calibration_targets < need:
-        raise CLIError(
-            f"--calibration-targets must be ≥ {need} for --false-alarm-rate {alpha:g}, got {args.calibration_targets}"
-        )
-    kernel = args.smoothing == "scott"
-    if args.draws_per_image < 2:
-        raise CLIError(f"--draws-per-image must be at least 2 (a bag's spread), got {args.draws_per_image}")
-    scale = _bandwidth_scale(args.bandwidth_scale, kernel)
+    alpha, scale = _check_options(args)
     check_json_path(args.json)
     check_figure_path(args.plot, "--plot")
     listed = [list_paths([f]) for f in folders]
@@ -223,14 +205,98 @@ def cmd_relate(args: argparse.Namespace) -> int:
         for f, paths in zip(folders, listed, strict=True)
     ]
     log.finish(model, each=True)
-    target, *sources = [Domain(model.posterior, b.x) for b in bags]
+    found = _relate_folders(args, model, folders, [b.x for b in bags], seed, alpha, scale)
+    _print_relation(args, model, found, seed, alpha, scale)
+    if args.json is not None:
+        write_json(args.json, _relation_json(args, model, found, seed, alpha) | log.to_json() | found.parameters())
+    if args.plot is not None:
+        _plot_relation(args.plot, model, found, alpha)
+    return 0
+
+
+def _check_options(args: argparse.Namespace) -> tuple[float, float]:
+    """``(--false-alarm-rate, --bandwidth-scale)``, after a :class:`CLIError` for any option out of its range."""
+    k = len(args.sources)
+    if args.points < k:
+        raise CLIError(f"--points {args.points} cannot determine {k} mixture weights: need --points ≥ {k}")
+    alpha = args.false_alarm_rate
+    if not (0.0 < alpha < 1.0):
+        raise CLIError(f"--false-alarm-rate must be in (0, 1), got {alpha:g}")
+    need = math.ceil((1.0 - alpha) / alpha - 1e-9)
+    if args.calibration_targets < need:
+        raise CLIError(
+            f"--calibration-targets must be ≥ {need} for --false-alarm-rate {alpha:g}, got {args.calibration_targets}"
+        )
+    if args.draws_per_image < 2:
+        raise CLIError(f"--draws-per-image must be at least 2 (a bag's spread), got {args.draws_per_image}")
+    return alpha, _bandwidth_scale(args.bandwidth_scale, args.smoothing == "scott")
+
+
+@dataclass(frozen=True)
+class _Found:
+    """What ``pidc relate`` found. ``target`` and ``sources``: the folders' :class:`components.domains.absolute.Domain`
+    bags (``names``: the sources' names); ``rel``: the relation of the target to the sources; ``detector``: the
+    calibrated :class:`components.domains.relative.OddDetector`; ``bandwidth``: the kernels' ``(d,)``, None with
+    ``--smoothing none``; ``pooled``: each folder's posterior draws ``(Nₖ·m, d)``; ``differences`` and ``levels``:
+    per parameter where the target differs from the fitted mixture, and the W₁ in-ODD targets exceed with probability
+    α; ``held``: the images of each calibration target."""
+
+    folders: list[Path]
+    names: list[str]
+    target: Any
+    sources: list[Any]
+    rel: Any
+    detector: Any
+    bandwidth: np.ndarray | None
+    pooled: list[np.ndarray]
+    differences: list[Any]
+    levels: np.ndarray
+    held: int
+
+    @property
+    def outside(self) -> bool:
+        """The verdict: the target is outside the ODD the sources span."""
+        return bool(self.detector.decide(self.rel.relative_gap))
+
+    def parameters(self) -> dict[str, Any]:
+        """The ``parameters`` entry of ``--json``: per parameter its difference and in-ODD level."""
+        return {
+            "parameters": {
+                diff.name: {
+                    **diff.to_dict(),
+                    "in_odd_level": level,
+                    "exceeds_in_odd_level": bool(diff.wasserstein > level),
+                }
+                for diff, level in zip(self.differences, self.levels, strict=True)
+            }
+        }
+
+
+def _relate_folders(
+    args: argparse.Namespace,
+    model: Any,
+    folders: list[Path],
+    inputs: list[np.ndarray],
+    seed: int,
+    alpha: float,
+    scale: float,
+) -> _Found:
+    """The target (``inputs[0]``) related to the sources (the rest), the detector calibrated on targets held out of
+    them, and where the target differs; a :class:`CLIError` where no verdict can be given."""
+    from components.domains.absolute import Domain
+    from components.domains.difference import InOddDifferences, parameter_differences
+    from components.domains.kernel import KernelDomain, sources_bandwidth
+    from components.domains.relative import calibrate_on_sources, relate
+
+    kernel = args.smoothing == "scott"
+    target, *sources = [Domain(model.posterior, x) for x in inputs]
     names = [folder_name(f) for f in folders[1:]]
     if len(set(names)) < len(names):
         names = [str(f) for f in folders[1:]]
     _check_calibration_sources(names, sources)
     # fixed posterior draws of every image: the kernel densities' support (--smoothing scott) and, for either
     # smoothing, the marginals that say where the target differs from the sources' fitted mixture
-    draws = _fixed_draws(model.posterior, [b.x for b in bags], args.draws_per_image, seed)
+    draws = _fixed_draws(model.posterior, inputs, args.draws_per_image, seed)
     bandwidth = None
     box = model.posterior.box
     pooled = [d.reshape(-1, d.shape[-1]) for d in draws]
@@ -266,10 +332,19 @@ def cmd_relate(args: argparse.Namespace) -> int:
     _say_warnings(caught, scale if kernel else None)
     if abs(detector.threshold - 1.0) <= SATURATION_BAND:
         raise CLIError(_saturated(detector.threshold, scale if kernel else None))
-    outside = detector.decide(rel.relative_gap)
     differences = parameter_differences(pooled[0], pooled[1:], rel.weights, box)
     levels = in_odd.levels(alpha)  # the W₁ that in-ODD targets of this size exceed with probability α
-    print(f"target {folders[0]}: {count(len(target), 'image')}; model {model.name}; {args.points} points (seed {seed})")
+    held = min(len(target), sum(len(s) // 2 for s in sources))  # calibrate_on_sources holds out ≤ half a source
+    return _Found(folders, names, target, sources, rel, detector, bandwidth, pooled, differences, levels, held)
+
+
+def _print_relation(args: argparse.Namespace, model: Any, found: _Found, seed: int, alpha: float, scale: float) -> None:
+    """``pidc relate``'s report on stdout: the folders, λ̂, the gaps, the threshold, the differences, the verdict."""
+    rel, detector, bandwidth, outside = found.rel, found.detector, found.bandwidth, found.outside
+    print(
+        f"target {found.folders[0]}: {count(len(found.target), 'image')}; model {model.name}; {args.points} points "
+        f"(seed {seed})"
+    )
     if bandwidth is None:
         print("each folder: the exact mixture of its images' posteriors (--smoothing none)")
     else:
@@ -278,9 +353,9 @@ def cmd_relate(args: argparse.Namespace) -> int:
             f"{scale:g} × the sources' Scott rule = "
             + ", ".join(f"{n} {h:.3g}" for n, h in zip(model.posterior.box.names, bandwidth, strict=False))
         )
-    width = max(len("source"), *map(len, names))
+    width = max(len("source"), *map(len, found.names))
     print(f"{'source':<{width}}  {'images':>6}  {'weight λ̂':>9}")
-    for name, s, lam in zip(names, sources, rel.weights, strict=False):
+    for name, s, lam in zip(found.names, found.sources, rel.weights, strict=False):
         print(f"{name:<{width}}  {len(s):>6}  {lam:>9.4f}")
     print(f"mean squared gap δ: {rel.gap:.4g} (density², physical units)")
     print(f"relative gap δ/mean(b²): {rel.relative_gap:.4g}")
@@ -292,60 +367,62 @@ def cmd_relate(args: argparse.Namespace) -> int:
         )
     else:
         print("degenerate: no")
-    held = min(len(target), sum(len(s) // 2 for s in sources))  # calibrate_on_sources holds out ≤ half a source
     print(
         f"threshold: {detector.threshold:.4g} (relative gap; {detector.n_calibration} in-ODD targets of "
-        f"{count(held, 'image')} held out of the sources; false-alarm rate {alpha:g})"
+        f"{count(found.held, 'image')} held out of the sources; false-alarm rate {alpha:g})"
     )
-    if k == 1:
+    if len(found.sources) == 1:
         print("note: one source, so λ̂ = 1; the verdict says whether the target looks like that source")
-    _print_differences(differences, levels, outside, args.draws_per_image, held, alpha)
+    _print_differences(found.differences, found.levels, outside, args.draws_per_image, found.held, alpha)
     verdict = "OUTSIDE the ODD" if outside else "inside the ODD"
     print(f"verdict: {verdict} (relative gap {'>' if outside else '≤'} threshold; false-alarm rate {alpha:g})")
-    if args.json is not None:
-        report = {
-            "target": {"name": folder_name(folders[0]), "folder": str(folders[0]), "images": len(target)},
-            "sources": [
-                {"name": n, "folder": str(f), "images": len(src), "weight": float(lam)}
-                for n, f, src, lam in zip(names, folders[1:], sources, rel.weights, strict=True)
-            ],
-            "model": model.name,
-            "seed": seed,
-            "points": args.points,
-            "smoothing": args.smoothing,
-            "draws_per_image": args.draws_per_image,
-            "bandwidth": None if bandwidth is None else dict(zip(box.names, map(float, bandwidth), strict=True)),
-            "gap": float(rel.gap),
-            "relative_gap": float(rel.relative_gap),
-            "degenerate": bool(rel.degenerate),
-            "threshold": float(detector.threshold),
-            "calibration_targets": detector.n_calibration,
-            "calibration_target_images": held,
-            "false_alarm_rate": alpha,
-            "outside": bool(outside),
-            **log.to_json(),
-            "parameters": {
-                diff.name: {
-                    **diff.to_dict(),
-                    "in_odd_level": level,
-                    "exceeds_in_odd_level": bool(diff.wasserstein > level),
-                }
-                for diff, level in zip(differences, levels, strict=True)
-            },
-        }
-        write_json(args.json, report)
-    if args.plot is not None:
-        from components.plots import relation_marginals, save_figure
 
-        notes = [
-            f"W₁ {q.wasserstein:.3g} {q.unit}{' *' if outside and q.wasserstein > level else ''} (in-ODD ≤ {level:.3g} "
-            f"with prob. {1 - alpha:g})"
-            for q, level in zip(differences, levels, strict=True)
-        ]
-        title = (
-            f"{folder_name(folders[0])} against {', '.join(names)} ({model.name}): {verdict} "
-            f"(relative gap {rel.relative_gap:.3g}, threshold {detector.threshold:.3g})"
-        )
-        save_figure(relation_marginals(pooled[0], pooled[1:], rel.weights, names, box, notes, title), args.plot)
-        print(f"wrote {args.plot}", file=sys.stderr)
-    return 0
+
+def _relation_json(args: argparse.Namespace, model: Any, found: _Found, seed: int, alpha: float) -> dict[str, Any]:
+    """The fields of ``--json`` up to the read log (which :meth:`ReadLog.to_json` adds, then the parameters)."""
+    rel, folders, box = found.rel, found.folders, model.posterior.box
+    return {
+        "target": {"name": folder_name(folders[0]), "folder": str(folders[0]), "images": len(found.target)},
+        "sources": [
+            {"name": n, "folder": str(f), "images": len(src), "weight": float(lam)}
+            for n, f, src, lam in zip(found.names, folders[1:], found.sources, rel.weights, strict=True)
+        ],
+        "model": model.name,
+        "seed": seed,
+        "points": args.points,
+        "smoothing": args.smoothing,
+        "draws_per_image": args.draws_per_image,
+        "bandwidth": None
+        if found.bandwidth is None
+        else dict(zip(box.names, map(float, found.bandwidth), strict=True)),
+        "gap": float(rel.gap),
+        "relative_gap": float(rel.relative_gap),
+        "degenerate": bool(rel.degenerate),
+        "threshold": float(found.detector.threshold),
+        "calibration_targets": found.detector.n_calibration,
+        "calibration_target_images": found.held,
+        "false_alarm_rate": alpha,
+        "outside": found.outside,
+    }
+
+
+def _plot_relation(path: Path, model: Any, found: _Found, alpha: float) -> None:
+    """``--plot``: the target's marginals against the fitted mixture's, each parameter's W₁ and in-ODD level noted."""
+    from components.plots import relation_marginals, save_figure
+
+    outside, rel = found.outside, found.rel
+    notes = [
+        f"W₁ {q.wasserstein:.3g} {q.unit}{' *' if outside and q.wasserstein > level else ''} (in-ODD ≤ {level:.3g} "
+        f"with prob. {1 - alpha:g})"
+        for q, level in zip(found.differences, found.levels, strict=True)
+    ]
+    verdict = "OUTSIDE the ODD" if outside else "inside the ODD"
+    title = (
+        f"{folder_name(found.folders[0])} against {', '.join(found.names)} ({model.name}): {verdict} "
+        f"(relative gap {rel.relative_gap:.3g}, threshold {found.detector.threshold:.3g})"
+    )
+    pooled = found.pooled
+    save_figure(
+        relation_marginals(pooled[0], pooled[1:], rel.weights, found.names, model.posterior.box, notes, title), path
+    )
+    print(f"wrote {path}", file=sys.stderr)

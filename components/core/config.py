@@ -9,7 +9,9 @@ profile replaces whole; lists and scalars replace). ``default``
 is ``params.yaml`` as it is.
 
 Sections are owned by the components that use them; each is a small pydantic model here so that one
-file shows every setting and its meaning.
+file shows every setting and its meaning: a setting's meaning is the docstring under its field (its one home;
+``params.yaml`` says only the unit and the allowed values), rendered with the type and the defaults into
+``docs/reference/settings.md`` by ``scripts/settings_page.py``.
 
 Used by every stage and the ``pidc`` CLI (``pidc config check``).
 """
@@ -36,6 +38,7 @@ from pydantic import (
 )
 
 from components.core import weather
+from components.core.checks import whole_number
 from components.core.images import RENDER_SIDES
 
 __all__ = ["ConfigError", "Params", "load_params", "parse_params", "profile_names", "DEFAULT_PROFILE", "PROJECT_ROOT"]
@@ -56,8 +59,10 @@ class ConfigError(ValueError):
 
 
 class _Section(BaseModel):
-    # finite numbers only (``.inf``/``.nan`` are no setting's meaning); counts and switches strict (below)
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    # finite numbers only (``.inf``/``.nan`` are no setting's meaning); counts and switches strict (below). Each
+    # field's docstring is its meaning, read by pydantic into ``description`` (the settings page,
+    # scripts/settings_page.py, prints it beside the key)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, use_attribute_docstrings=True)
 
 
 def _no_bool(v: object) -> object:
@@ -90,32 +95,45 @@ class CarlaConfig(_Section):
     """Connection and scene settings of the CARLA backend (``simulator.backend: carla``)."""
 
     host: str
+    """host name or address of the CARLA server"""
     port: Annotated[StrictInt, Field(gt=0, lt=65536)]
+    """the CARLA server's RPC port"""
     timeout_s: Annotated[Real, Field(gt=0)]
-    #: maps drawn from by the scene seed; empty = every map the server offers
+    """seconds the client waits for the server to answer before it fails"""
     maps: tuple[str, ...]
+    """maps drawn from by the scene seed; empty = every map the server offers"""
     fixed_delta_seconds: Annotated[Real, Field(gt=0, le=0.1)]
-    #: ticks between setting the weather and capturing (auto-exposure settles)
+    """simulated seconds per tick: the world runs in synchronous mode, one tick per step of the client"""
     settle_ticks: PositiveInt
+    """ticks between setting the weather and capturing (auto-exposure settles)"""
     traffic_manager_port: Annotated[StrictInt, Field(gt=0, lt=65536)]
+    """the port of CARLA's traffic manager, which drives the spawned vehicles"""
     max_vehicles: NonNegativeInt
+    """a scene's vehicles besides the camera's: uniform on 0 … max_vehicles (from the scene seed), capped by the
+    map's spawn points"""
     max_pedestrians: NonNegativeInt
-    #: horizontal field of view of the RGB camera, degrees
+    """a scene's pedestrians: uniform on 0 … max_pedestrians (from the scene seed)"""
     fov: Annotated[Real, Field(gt=0, lt=180)]
+    """horizontal field of view of the RGB camera, degrees"""
 
 
 class SimulatorConfig(_Section):
     """Which simulator renders the data, and at what resolution (pixels)."""
 
     backend: Literal["procedural", "carla"]
-    #: the images' size in pixels, within the renderer's range (``images.RENDER_SIDES``: 16..2048)
+    """the renderer: ``procedural`` (embedded in pidc, no server) or ``carla`` (a running CARLA server,
+    ``simulator.carla``)"""
     height: Annotated[StrictInt, Field(ge=RENDER_SIDES[0], le=RENDER_SIDES[1])]
+    """the images' height in pixels, within the renderer's range (``images.RENDER_SIDES``: 16..2048)"""
     width: Annotated[StrictInt, Field(ge=RENDER_SIDES[0], le=RENDER_SIDES[1])]
-    #: null: the renderer's own ``height × width`` images; ``[low, high]``: each scene rendered ``low..high`` pixels
-    #: high (drawn from its seed; the width in proportion) and area-resized to ``height × width``, as a camera's
-    #: images are (components/simulate/resized.py); the procedural backend only
+    """the images' width in pixels, within the renderer's range"""
     render_sizes: tuple[PositiveInt, PositiveInt] | None
+    """null: the renderer's own ``height × width`` images; ``[low, high]``: each scene rendered ``low..high`` pixels
+    high (drawn from its seed; the width in proportion) and area-resized to ``height × width``, as a camera's
+    images are (components/simulate/resized.py), so the models cover resized images; the procedural backend only
+    (study: docs/studies/camera-renders.md)"""
     carla: CarlaConfig
+    """the CARLA backend's connection and scenes (read only with ``backend: carla``)"""
 
     @model_validator(mode="after")
     def _render_sizes(self) -> SimulatorConfig:
@@ -139,9 +157,11 @@ class RunnerConfig(_Section):
     """The Prefect task runner of fan-out flows: threads, processes, or a Dask cluster."""
 
     kind: Literal["threads", "processes", "dask"]
+    """``threads`` (one process), ``processes`` (local worker processes) or ``dask`` (a Dask cluster)"""
     workers: PositiveInt
-    #: address of an existing Dask scheduler (``tcp://host:8786``); null = a local cluster (kind: dask only)
+    """tasks run at a time (threads, processes, or the workers of a local Dask cluster)"""
     dask_address: str | None
+    """address of an existing Dask scheduler (``tcp://host:8786``); null = a local cluster (kind: dask only)"""
 
     @model_validator(mode="after")
     def _dask_address(self) -> RunnerConfig:
@@ -157,14 +177,21 @@ class DataConfig(_Section):
     """The simulated dataset: split sizes, sharding and scene reuse."""
 
     root: Annotated[str, Field(min_length=1)]
-    #: number of images per split; the train split must cover the largest training size
+    """the folder of the simulated dataset's shards, relative to the project unless absolute (a DVC output)"""
     splits: dict[Literal["train", "val", "test"], PositiveInt]
+    """number of images per split. The train split must cover the largest training size; the val split picks the
+    best epoch, fits the base scales τ (and the night regime's) and stops early where ``train.patience`` is set;
+    the test split is Task I's; study: docs/studies/validation-split.md"""
     shard_size: PositiveInt
-    #: consecutive images rendered in the same scene (a map and spawn point under many weathers)
+    """images per shard file"""
     images_per_scene: PositiveInt
-    #: shards one Prefect task renders (generate) or passes through a backbone (features)
+    """consecutive images rendered in the same scene (a map and spawn point under many weathers)"""
     shards_per_task: PositiveInt
+    """shards one Prefect task renders (generate) or passes through a backbone (features); each task run costs
+    0.1–0.3 s of bookkeeping, and a task still writes its shards one by one
+    (study: docs/studies/fewer-larger-tasks.md)"""
     runner: RunnerConfig
+    """the task runner of the generate and features stages"""
 
     @field_validator("splits")
     @classmethod
@@ -179,18 +206,23 @@ class ContactSheetConfig(_Section):
     """The generate stage's contact sheet: each row sweeps one parameter from low to high."""
 
     steps: Annotated[StrictInt, Field(ge=2)]
+    """tiles per row: the parameter's values from its low to its high end"""
     scenes: PositiveInt
+    """scenes shown, one block of rows (one per predicted parameter) each"""
     path: Annotated[str, Field(min_length=1)]
+    """the sheet's PNG file, relative to the project (a DVC output)"""
 
 
 class BackbonesConfig(_Section):
     """The image backbones of the grid and where pretrained weights are found."""
 
-    #: the grid's backbones, each once (components/features/backbones: ``available()``)
     names: tuple[BackboneName, ...] = Field(min_length=1)
-    #: a local directory holding one sub-folder of Hugging Face weights per pretrained backbone
+    """the grid's backbones, each once (components/features/backbones: ``available()``)"""
     pretrained_dir: str | None
+    """a local directory holding one sub-folder of Hugging Face weights per pretrained backbone
+    (``<dir>/<backbone>/``, ``save_pretrained`` folders); null = the Hugging Face cache"""
     batch_size: PositiveInt
+    """images per batch through a frozen backbone in the features stage"""
 
     @field_validator("names")
     @classmethod
@@ -202,19 +234,25 @@ class FlowParams(_Section):
     """The conditional neural spline flow (``components.posterior.FlowConfig``)."""
 
     transforms: PositiveInt
+    """rational-quadratic spline transforms stacked in the flow"""
     hidden_features: tuple[PositiveInt, ...]
+    """widths of each transform's conditioner MLP at ``train.scale_to`` training images or more (divided by √s
+    below it, components/posterior/settings.py)"""
     bins: Annotated[StrictInt, Field(ge=2)]
-    #: 2 = coupling flow (fast sampling), up to 6 (one pass per parameter); null = fully autoregressive (1 would make
-    #: the parameters independent given the image)
+    """spline bins per transform and parameter"""
     passes: Annotated[StrictInt, Field(ge=2, le=len(weather.PREDICTED))] | None
-    #: flows in an equal-weight ensemble for models of at least ``train.ensemble_min_size`` training images (fewer
-    #: images: one flow); calibration and sharpness beyond the paper; 1 = a single flow everywhere
+    """2 = coupling flow (fast sampling), up to 6 (one pass per parameter); null = fully autoregressive (1 would make
+    the parameters independent given the image)"""
     ensemble: PositiveInt
-    #: standardize the flow's inputs with a mean/std fitted on the training set
+    """flows in an equal-weight ensemble for models of at least ``train.ensemble_min_size`` training images (fewer
+    images: one flow); calibration and sharpness beyond the paper; 1 = a single flow everywhere
+    (studies: docs/studies/sky-thumbnail-two-flows.md, docs/studies/flow-ensemble.md)"""
     standardize: StrictBool
-    #: widths of the context network (an MLP, SiLU between its layers) from the backbone's features to the flows'
-    #: context, shared by an ensemble's flows; the last width is the context size; [] = the features are the context
+    """standardize the flow's inputs with a mean/std fitted on the training set"""
     context_layers: tuple[PositiveInt, ...]
+    """widths of the context network (an MLP, SiLU between its layers) from the backbone's features to the flows'
+    context, shared by an ensemble's flows; the last width is the context size; [] = the features are the context.
+    A backbone trained jointly with the flow (``cnn``) has none; study: docs/studies/context-network.md"""
 
 
 class VariantConfig(_Section):
@@ -223,86 +261,113 @@ class VariantConfig(_Section):
     Variants are keyed by name in ``train.variants``; the model id is ``<backbone>-<size>-<name>``."""
 
     backbone: str
+    """the variant's backbone, one of ``backbones.names``"""
     size: PositiveInt
-    #: λ of balanced NPE for this model
+    """the variant's training images, one of ``train.sizes``"""
     balance: Annotated[Real, Field(ge=0)]
-    #: flows in this model's equal-weight ensemble
+    """λ of balanced NPE for this model (0 = plain NPE)"""
     ensemble: PositiveInt
+    """flows in this model's equal-weight ensemble"""
 
 
 class TemperatureRegimeConfig(_Section):
     """A second base scale τ for the inputs whose θ[parameter] < below (components/posterior/regime.py)."""
 
-    #: the regime's name in the models' metrics (``temperature_<name>.<parameter>``)
     name: Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")]
-    #: the predicted parameter that defines the regime, and the value below which an input lies in it
+    """the regime's name in the models' metrics (``temperature_<name>.<parameter>``)"""
     parameter: str
+    """the predicted parameter that defines the regime"""
     below: Real
+    """an input lies in the regime when its ``parameter`` is below this value (physical units, inside the prior)"""
 
 
 class TrainConfig(_Section):
     """The grid of models (backbone × training size) and how each is trained."""
 
-    #: training-set sizes: nested prefixes of the train split
     sizes: tuple[PositiveInt, ...] = Field(min_length=1)
-    #: the MLflow experiment of the grid
+    """training-set sizes: nested prefixes of the train split"""
     experiment: Annotated[str, Field(min_length=1)]
+    """the MLflow experiment of the grid (the store is ``sqlite:///mlflow.db`` unless ``MLFLOW_TRACKING_URI`` is
+    set)"""
     flow: FlowParams
+    """the conditional neural spline flow of every model (zuko's NSF)"""
     epochs: PositiveInt
-    #: maximum epochs for a backbone trained jointly with the flow (costly on a CPU)
+    """epochs at ``scale_to`` training images or more (× s below, capped by ``sample_budget``)
+    (study: docs/studies/longer-training.md)"""
     embedding_epochs: PositiveInt
-    #: training samples seen at most (epochs × size): a model of ``size`` images trains
-    #: min(epochs, ⌈sample_budget / size⌉) epochs, so large training sets cost a bounded time
+    """maximum epochs for a backbone trained jointly with the flow (``cnn``; costly on a CPU)"""
     sample_budget: PositiveInt
-    #: the same for a backbone trained jointly with the flow (with ``embedding_epochs``)
+    """training samples seen at most (epochs × size): a model of ``size`` images trains
+    min(⌈epochs·s⌉, ⌈sample_budget / size⌉) epochs (s of ``scale_to``), so large training sets cost a bounded time"""
     embedding_sample_budget: PositiveInt
-    #: below this many training images, s = scale_to / size: s× epochs and patience, hidden widths / √s
+    """the same for a backbone trained jointly with the flow (with ``embedding_epochs``, no scaling by s)"""
     scale_to: PositiveInt
+    """below this many training images, s = scale_to / size: s× epochs and patience, hidden widths / √s
+    (study: docs/studies/sbi-problems.md)"""
     batch_size: PositiveInt
+    """training examples per optimizer step"""
     lr: Annotated[Real, Field(gt=0)]
+    """the learning rate of AdamW (the schedule's start)"""
     weight_decay: Annotated[Real, Field(ge=0)]
+    """AdamW's decoupled weight decay"""
     schedule: Literal["cosine", "plateau", "constant"]
-    #: the schedule's floor (where cosine ends; the plateau schedule's minimum)
+    """the learning-rate schedule: ``cosine`` (from ``lr`` down to ``min_lr`` over the epochs), ``plateau``
+    (× ``plateau_factor`` when the validation loss stalls) or ``constant``"""
     min_lr: Annotated[Real, Field(ge=0)]
-    #: the plateau schedule: lr × plateau_factor after plateau_patience epochs without improvement
+    """the schedule's floor (where cosine ends; the plateau schedule's minimum)"""
     plateau_factor: Annotated[Real, Field(gt=0, lt=1)]
+    """the plateau schedule: lr × plateau_factor after plateau_patience epochs without improvement"""
     plateau_patience: PositiveInt
-    #: early stopping: stop after this many epochs without improvement of the validation loss (× s below scale_to);
-    #: null: none, every epoch of the schedule runs (the weights of the best validation epoch are kept either way)
+    """the plateau schedule's epochs without improvement of the validation loss before the rate drops"""
     patience: PositiveInt | None
-    #: the improvement of the validation loss that counts (nats)
+    """early stopping: stop after this many epochs without improvement of the validation loss (× s below scale_to);
+    null: none, every epoch of the schedule runs (the weights of the best validation epoch are kept either way)
+    (study: docs/studies/early-stopping.md)"""
     min_delta: Annotated[Real, Field(ge=0)]
+    """the improvement of the validation loss that counts (nats)"""
     clip_norm: Annotated[Real, Field(gt=0)] | None
-    #: λ of balanced NPE (calibration beyond the paper; 0 = plain NPE)
+    """the gradients' global L2 norm is clipped to this; null = no clipping"""
     balance: Annotated[Real, Field(ge=0)]
-    #: σ of Gaussian noise added to the frozen features while training (units of their standard deviation) at
-    #: ``scale_to`` images, × √(scale_to / size) for other sizes, none above ``input_noise_max_size`` images
-    #: (components/posterior/settings.py); 0 = none
+    """λ of balanced NPE (calibration beyond the paper; 0 = plain NPE)"""
     input_noise: Annotated[Real, Field(ge=0)]
+    """σ of Gaussian noise added to the frozen features while training (units of their standard deviation) at
+    ``scale_to`` images, × √(scale_to / size) for other sizes, none above ``input_noise_max_size`` images
+    (components/posterior/settings.py); 0 = none. It regularizes the frozen features of few training images; with
+    τ fitted on the validation split the default leaves the coverage gap near zero (docs/training.md)
+    (studies: docs/studies/validation-split.md, docs/studies/cues-3-input-noise.md)"""
     input_noise_max_size: PositiveInt
-    #: no input noise for a model of fewer input features: noise regularizes many redundant features (cues 377, tiny
-    #: 256) and erases the signal of a few informative ones (the SBI problems' 2–10)
+    """no input noise for models of more training images than this"""
     input_noise_min_features: PositiveInt
-    #: train on each input or its mirror image's with probability ½ (a left-right mirror leaves the weather and the
-    #: sun and wind azimuths unchanged in law, the scenes nearly; components/posterior/train.py); the backbones'
-    #: features permute under it
+    """no input noise for a model of fewer input features: noise regularizes many redundant features (cues 377, tiny
+    256) and erases the signal of a few informative ones (the SBI problems' 2–10)
+    (study: docs/studies/sbi-problems-defaults.md)"""
     mirror: StrictBool
-    #: models of at least this many training images are ensembles of ``train.flow.ensemble`` flows, the others one
-    #: flow (components/posterior/settings.py)
+    """train on each input or its mirror image's with probability ½ (a left-right mirror leaves the weather and the
+    sun and wind azimuths unchanged in law, the scenes nearly; components/posterior/train.py); the backbones'
+    features permute under it; a pretrained backbone's features cannot (an error names it)
+    (study: docs/studies/mirrored-inputs.md)"""
     ensemble_min_size: PositiveInt
-    #: after training, fit the flows' base scale τ (one per parameter) on the validation split by maximum
-    #: likelihood (post-hoc calibration, components/posterior/temperature.py); false: τ = 1
+    """models of at least this many training images are ensembles of ``train.flow.ensemble`` flows, the others one
+    flow (components/posterior/settings.py)"""
     temperature: StrictBool
-    #: with ``temperature``: one τ outside and one inside this regime, blended per input by a logistic gate on the
-    #: flows' context fitted on the training split (components/posterior/regime.py); null: one τ for every input
+    """after training, fit the flows' base scale τ (one per parameter) on the validation split by maximum
+    likelihood (post-hoc calibration, components/posterior/temperature.py); false: τ = 1
+    (study: docs/studies/temperature.md)"""
     temperature_regime: TemperatureRegimeConfig | None
-    #: a model trained for at least this many optimizer steps compiles its training loss with torch.compile (35–50 s
-    #: once per model shape, then 1.7–1.9× faster steps); null: never (components/posterior/settings.py)
+    """with ``temperature``: one τ outside and one inside this regime, blended per input by a logistic gate on the
+    flows' context fitted on the training split (components/posterior/regime.py); null: one τ for every input
+    (study: docs/studies/night-base-scale.md)"""
     compile_min_steps: NonNegativeInt | None
-    #: calibrated variants trained and evaluated beside the grid
+    """a model trained for at least this many optimizer steps compiles its training loss with torch.compile (35–50 s
+    once per model shape, then 1.7–1.9× faster steps); null: never (components/posterior/settings.py)
+    (study: docs/studies/compiled-training.md)"""
     variants: dict[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")], VariantConfig]
-    #: the task runner training the models in parallel (processes: ``cores // workers`` torch threads each)
+    """calibrated variants trained and evaluated beside the grid, keyed by a name of your choice (model id
+    ``<backbone>-<size>-<name>``), e.g. ``ensemble: {backbone: cues, size: 50000, balance: 0.0, ensemble: 3}``;
+    empty: the grid alone"""
     runner: RunnerConfig
+    """the task runner training the models in parallel, the largest first (processes: ``cores // workers`` torch
+    threads each); study: docs/studies/parallel-grid.md"""
 
     @field_validator("sizes")
     @classmethod
@@ -319,49 +384,52 @@ class TrainConfig(_Section):
 class EvaluateConfig(_Section):
     """Task I evaluation of every model of the grid on the test split."""
 
-    #: test images evaluated: ``all`` (the whole test split) or a count ≤ ``data.splits.test`` (the first ones)
     images: PositiveInt | Literal["all"]
-    #: posterior samples per image (HPD credibility, coverage, π); the 99.73 % HDR of the plots needs ≥ 371
+    """test images evaluated: ``all`` (the whole test split) or a count ≤ ``data.splits.test`` (the first ones)"""
     samples: Annotated[StrictInt, Field(ge=400)]
-    #: images given a posterior predictive check, and re-renders per check (posterior and prior each)
+    """posterior samples per image (HPD credibility, coverage, π); the 99.73 % HDR of the plots needs ≥ 371"""
     ppc_images: PositiveInt
+    """test images given a posterior predictive check"""
     ppc_renders: Annotated[StrictInt, Field(ge=2)]
-    #: test images shown as histograms and corner plots per model
+    """re-renders per check, from the posterior and from the prior each"""
     example_images: NonNegativeInt
-    #: equal-width bins of each parameter's prior range: the errors and coverage by true value (``profiles.json``)
+    """test images shown as histograms and corner plots per model"""
     profile_bins: Annotated[StrictInt, Field(ge=1, le=100)]
-    #: ``calibration_band``: this quantile of the calibration error of a perfectly calibrated model on the same
-    #: images and samples, simulated ``band_replicates`` times (seeded); ``within_band``: the error is ≤ the band
+    """equal-width bins of each parameter's prior range: the errors and the 68 % coverage by true value
+    (``reports/task1/profiles.json``, ``plots/<model>/profile.png``)"""
     band_level: Annotated[Real, Field(gt=0, lt=1)]
+    """``calibration_band``: this quantile of the calibration error of a perfectly calibrated model on the same
+    images and samples, simulated ``band_replicates`` times (seeded); ``within_band``: the error is ≤ the band"""
     band_replicates: Annotated[StrictInt, Field(ge=100)]
-    #: the task runner evaluating models in parallel (processes: one onnxruntime thread each)
+    """simulated evaluations of a perfectly calibrated model behind the band (seeded)"""
     runner: RunnerConfig
+    """the task runner evaluating models in parallel (processes: one onnxruntime thread each)"""
 
     @field_validator("images", mode="before")
     @classmethod
     def _images(cls, v: object) -> object:
-        if v == "all" or (isinstance(v, int) and not isinstance(v, bool) and v > 0):
+        if v == "all":
             return v
-        raise ValueError(f"must be a positive number of test images or 'all' (the whole test split), got {v!r}")
+        return whole_number("the number of test images", v, low=1, hint=" or 'all' (the whole test split)")
 
 
 class ExportConfig(_Section):
     """ONNX export of every model into ``registry/`` and its registration in the MLflow Model Registry."""
 
-    #: torch → ONNX exporter: ``torchscript`` (~5 s a model here; deprecated by torch but checked against torch at
-    #: export time) or ``dynamo`` (torch.export, torch's maintained route; 50–130 s a model here)
     exporter: Literal["torchscript", "dynamo"]
-    #: the one registered model whose versions are the exported models (each tagged ``pidc.model``); the aliases
-    #: ``champion`` and ``challenger`` move between its versions, so ``models:/<name>@champion`` is the current best
+    """torch → ONNX exporter: ``torchscript`` (~5 s a model here; deprecated by torch but checked against torch at
+    export time) or ``dynamo`` (torch.export, torch's maintained route; 50–130 s a model here)"""
     registered_model: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]+$")]
-    #: the champion (alias ``champion``, ``reports/task1/champion.json``) is the lowest test NLL among the models whose
-    #: calibration error lies within the band of a perfectly calibrated model (``evaluate.band_level``); when none
-    #: does, the lowest test NLL among those with a calibration error ≤ this ceiling (the choice is recorded);
-    #: when none is below it either, the evaluation fails
+    """the one registered model whose versions are the exported models (each tagged ``pidc.model``); the aliases
+    ``champion`` and ``challenger`` move between its versions, so ``models:/<name>@champion`` is the current best"""
     champion_max_calibration_error: Annotated[Real, Field(gt=0, le=1)]
-    #: models exported at a time (their registrations follow one by one, in the grid's order); in processes only:
-    #: torch's ONNX exporter keeps global state, so two exports in one process would corrupt each other
+    """the champion (alias ``champion``, ``reports/task1/champion.json``) is the lowest test NLL among the models whose
+    calibration error lies within the band of a perfectly calibrated model (``evaluate.band_level``); when none
+    does, the lowest test NLL among those with a calibration error ≤ this ceiling (the choice is recorded);
+    when none is below it either, the evaluation fails"""
     runner: RunnerConfig
+    """models exported at a time (their registrations follow one by one, in the grid's order); in processes only:
+    torch's ONNX exporter keeps global state, so two exports in one process would corrupt each other"""
 
     @field_validator("runner")
     @classmethod
@@ -389,21 +457,24 @@ ModelName = Annotated[str, Field(min_length=1), AfterValidator(_model_name)]
 class GaussianMode(_Section):
     """One component of Task II's Gaussian mixture over (fog_density, precipitation), physical units."""
 
-    #: its share of the mixture; the modes' weights are relative (divided by their sum)
     weight: Annotated[Real, Field(gt=0)]
+    """its share of the mixture; the modes' weights are relative (divided by their sum)"""
     mean: tuple[Real, Real]
+    """the mode's centre, ``[fog_density, precipitation]``, inside the prior"""
     std: tuple[Annotated[Real, Field(gt=0)], Annotated[Real, Field(gt=0)]]
+    """the mode's standard deviations, ``[fog_density, precipitation]`` (independent)"""
 
 
 class DeconvolutionConfig(_Section):
     """Task II's deconvolved estimate (:mod:`components.domains.deconvolution`)."""
 
-    #: posterior draws per bag image forming the support of the estimate (support size = images × draws)
     draws_per_image: PositiveInt
-    #: EM steps tried (1 = the mixture of posteriors); the number used is chosen by held-out likelihood
+    """posterior draws per bag image forming the support of the estimate (support size = images × draws)"""
     max_steps: PositiveInt
-    #: folds of the cross-validation over the bag's images
+    """EM steps tried from the prior (1 = the mixture of posteriors); the number used is chosen by held-out
+    likelihood (the one-standard-error rule)"""
     folds: Annotated[StrictInt, Field(ge=2)]
+    """folds of the cross-validation over the bag's images"""
 
 
 class WidthFloorConfig(_Section):
@@ -411,12 +482,12 @@ class WidthFloorConfig(_Section):
     moved onto the image's true θ, and the mixture of calibrated posteriors of the same shape, their spread scaled by
     each of ``scales``; for the varying parameters, the two mixtures' difference with its bootstrap interval."""
 
-    #: posterior draws per bag image
     draws: Annotated[StrictInt, Field(ge=2)]
-    #: bootstrap replicates (resampled bag images) behind the 95 % interval of the mixture's ratio minus the calibrated
+    """posterior draws per bag image behind both mixtures"""
     bootstrap: Annotated[StrictInt, Field(ge=40)]
-    #: the spread's scale factors s (1 = the posteriors' own widths, required: the report and its plot show it)
+    """bootstrap replicates (resampled bag images) behind the 95 % interval of the mixture's ratio minus the calibrated"""
     scales: tuple[Annotated[Real, Field(gt=0)], ...] = Field(min_length=1)
+    """the spread's scale factors s (1 = the posteriors' own widths, required: the report and its plot show it)"""
 
     @field_validator("scales")
     @classmethod
@@ -429,27 +500,32 @@ class WidthFloorConfig(_Section):
 class Task2Config(_Section):
     """Task II: a bag of rendered images whose weather follows a known distribution → its characterization."""
 
-    #: the model characterizing the bag: ``champion``/``challenger`` (the registered model's alias, e.g.
-    #: ``models:/pidc@champion``; the evaluate stage sets it), a ``models:/`` URI, or a model id of ``registry/``
     model: ModelName
-    #: images in the bag (all equally weighted), rendered in fresh scenes
+    """the model characterizing the bag: ``champion``/``challenger`` (the registered model's alias, e.g.
+    ``models:/pidc@champion``; the evaluate stage sets it), a ``models:/`` URI, or a model id of ``registry/``"""
     images: PositiveInt
+    """images in the bag (all equally weighted), rendered in fresh scenes"""
     images_per_scene: PositiveInt
-    #: the fixed predicted parameters (every one but fog_density and precipitation), physical units
+    """consecutive images of the bag rendered in the same scene"""
     fixed: dict[str, Real]
-    #: the sun azimuth of every image of the bag, degrees (the paper fixes every parameter but the two that vary)
+    """the fixed predicted parameters (every one but fog_density and precipitation), physical units"""
     sun_azimuth_angle: Annotated[Real, Field(ge=0, lt=360)]
-    #: the Gaussian mixture over (fog_density, precipitation), truncated to the prior box
+    """the sun azimuth of every image of the bag, degrees (the paper fixes every parameter but the two that vary)"""
     modes: tuple[GaussianMode, ...] = Field(min_length=1)
-    #: draws from the estimate and from the true distribution (metrics and plots)
+    """the bag's weather: a Gaussian mixture over (fog_density, precipitation), truncated to the prior box"""
     samples: Annotated[StrictInt, Field(ge=100)]
-    #: the estimate's highest-density region whose share of the true mass is reported
+    """draws from the estimate and from the true distribution (metrics and plots)"""
     hdr_level: Annotated[Real, Field(gt=0, lt=1)]
-    #: the estimate scored: ``mixture`` = Σᵢ wᵢ q(θ | xᵢ) (the paper's), ``deconvolved`` = the maximum-likelihood
-    #: weather distribution of the bag (the mixture's figures are then reported beside it)
+    """the estimate's highest-density region whose share of the true mass is reported"""
     estimate: Literal["mixture", "deconvolved"]
+    """the estimate scored: ``mixture`` = Σᵢ wᵢ q(θ | xᵢ) (the paper's), ``deconvolved`` = the maximum-likelihood
+    weather distribution of the bag, by EM from the prior whose first step is the mixture (the mixture's figures
+    are then reported beside it); study: docs/studies/task2-deconvolution.md"""
     deconvolution: DeconvolutionConfig
+    """the deconvolved estimate's settings (read with ``estimate: deconvolved``)"""
     width_floor: WidthFloorConfig
+    """what the posteriors' widths alone allow (``reports/task2/metrics.json``, ``width_floor``)
+    (study: docs/studies/task2-width-floor.md)"""
 
     @model_validator(mode="after")
     def _folds_fit(self) -> Task2Config:
@@ -475,42 +551,51 @@ class Task2Config(_Section):
 class BagConfig(_Section):
     """A Task III bag: the test images whose weather lies in a sub-box of the prior (uniform on it)."""
 
-    #: the sub-box, per predicted parameter (omitted ones span the prior), physical units
     box: dict[str, tuple[Real, Real]]
-    #: at most this many images (the first ones of the test split inside the sub-box)
+    """the sub-box, per predicted parameter (omitted ones span the prior), physical units"""
     max_images: PositiveInt
+    """at most this many images (the first ones of the test split inside the sub-box)"""
 
 
 class Task3Config(_Section):
     """Task III: targets mixing three source bags and an out-of-ODD bag b0 at noise level η (the paper's sweep)."""
 
-    #: the model characterizing every bag: as ``task2.model``
     model: ModelName
-    #: b0 (out of the ODD; disjoint from the others), then the sources b1, b2, b3
+    """the model characterizing every bag: as ``task2.model``"""
     bags: dict[Annotated[str, Field(pattern=r"^b[0-9]+$")], BagConfig]
-    #: the true mixture weights λ of the sources b1, b2, … (on the simplex)
+    """b0 (out of the ODD; disjoint from the others), then the sources b1, b2, b3; an image in two source sub-boxes
+    belongs to the first (b1 before b2 …), so bags and fresh pools share no image"""
     weights: tuple[Annotated[Real, Field(ge=0)], ...]
-    #: noise levels η: the share of b0 in the target
+    """the true mixture weights λ of the sources b1, b2, … (on the simplex)"""
     etas: tuple[Annotated[Real, Field(ge=0, le=1)], ...]
+    """noise levels η: the share of b0 in the target"""
     repetitions: PositiveInt
-    #: n_W, points drawn from the target's characterization where the densities are compared
+    """targets per η and kind: with 50, a perfect separation's 95 % interval of the AUC against η = 0 (Newcombe)
+    starts at 0.961; study: docs/studies/task3-auc-intervals.md"""
     n_points: PositiveInt
-    #: the ODD decision's false-alarm rate α, and the in-ODD (η = 0) targets calibrating its threshold
+    """n_W, points drawn from the target's characterization where the densities are compared (the paper: 16)
+    (study: docs/studies/task3-characterization.md)"""
     false_alarm_rate: Annotated[Real, Field(gt=0, lt=1)]
+    """the ODD decision's false-alarm rate α"""
     calibration_targets: PositiveInt
-    #: in-ODD (η = 0) targets of new seeds (neither the calibration's nor the sweep's) on which the false-alarm rate
-    #: is measured, with its Clopper–Pearson interval
+    """in-ODD (η = 0) targets of their own seeds calibrating the decision's threshold; the threshold's spread makes
+    a healthy detector fail the binomial check on 200 targets 20 % of the time at 100, 8 % at 400"""
     false_alarm_targets: PositiveInt
-    #: beyond the paper: also run fresh targets (their in-ODD part from other test images of the sources' sub-boxes);
-    #: the ODD decision is then calibrated and judged on them (see components.domains.sweep)
+    """in-ODD (η = 0) targets of new seeds (neither the calibration's nor the sweep's) on which the false-alarm rate
+    is measured, with its Clopper–Pearson interval"""
     fresh_targets: StrictBool
-    #: how a bag's weather is characterized: ``scott``, the kernel density of ``draws_per_image`` posterior draws per
-    #: image with the sources' Scott bandwidth (components.domains.kernel); ``none``, the exact mixture of posteriors
-    #: (the paper's: isolated peaks when the posteriors are sharp and the bags small)
+    """beyond the paper: also run fresh targets (their in-ODD part from other test images of the sources' sub-boxes);
+    the ODD decision is then calibrated and judged on them (see components.domains.sweep)"""
     smoothing: Literal["scott", "none"]
+    """how a bag's weather is characterized: ``scott``, the kernel density of ``draws_per_image`` posterior draws per
+    image with the sources' Scott bandwidth (components.domains.kernel); ``none``, the exact mixture of posteriors
+    (the paper's: isolated peaks when the posteriors are sharp and the bags small)
+    (study: docs/studies/task3-characterization.md)"""
     draws_per_image: Annotated[StrictInt, Field(ge=2)]
-    #: the kernel's bandwidth in units of Scott's rule (smoothing: scott)
+    """posterior draws per image behind the kernel density (smoothing: scott)"""
     bandwidth_scale: Annotated[Real, Field(gt=0)]
+    """the kernel's bandwidth in units of Scott's rule, one for all bags (smoothing: scott)
+    (study: docs/studies/task3-characterization.md)"""
 
     @model_validator(mode="after")
     def _consistent(self) -> Task3Config:
@@ -561,25 +646,26 @@ class MonitorConfig(_Section):
     """Scheduled monitoring (``flows/monitor.py``, the deployments of ``prefect.yaml``): the registered models judged
     on new labelled images every run, never a DVC output (``reports/monitoring/<date>/``, an MLflow experiment)."""
 
-    #: the MLflow experiment of the monitoring runs (one run ``monitor-<date>`` per scheduled run: a time series)
     experiment: Annotated[str, Field(min_length=1)]
-    #: ``champion`` (``models:/<export.registered_model>@champion``) or ``all`` (every registered model's newest
-    #: version); a flow parameter overrides it
+    """the MLflow experiment of the monitoring runs (one run ``monitor-<date>`` per scheduled run: a time series)"""
     models: Literal["champion", "all"]
-    #: ``simulator`` (new images rendered from seeds of ``seed`` and the run's date) or the path of a folder of
-    #: recorded images with their labels (``labels.csv``: ``image`` and the six parameters; relative to the project)
+    """``champion`` (``models:/<export.registered_model>@champion``) or ``all`` (every registered model's newest
+    version); a flow parameter overrides it"""
     source: Annotated[str, Field(min_length=1)]
-    #: Task I images per run (simulator: rendered; a folder: its first ones in ``labels.csv``, all if it holds fewer)
+    """``simulator`` (new images rendered from seeds of ``seed`` and the run's date) or the path of a folder of
+    recorded images with their labels (``labels.csv``: ``image`` and the six parameters; relative to the project)"""
     images: PositiveInt
-    #: posterior draws per image (credibility of the truth, coverage, the calibration band at the same count)
+    """Task I images per run (simulator: rendered; a folder: its first ones in ``labels.csv``, all if it holds fewer)"""
     samples: Annotated[StrictInt, Field(ge=100)]
-    #: the level of both alarms: the calibration band is this quantile of a perfectly calibrated model's calibration
-    #: error on as many images and draws, and the false-alarm interval holds this probability of the ODD decision's
-    #: false-alarm count; a model that is fine raises each alarm with probability ≤ 1 − level
+    """posterior draws per image (credibility of the truth, coverage, the calibration band at the same count)"""
     alarm_level: Annotated[Real, Field(gt=0.5, lt=1)]
-    #: Task III: in-ODD targets of new seeds (and, from the simulator, new images) on which the ODD decision's
-    #: false-alarm rate is measured with the threshold of ``reports/task3/metrics.json``; 0: no ODD check
+    """the level of both alarms: the calibration band is this quantile of a perfectly calibrated model's calibration
+    error on as many images and draws, and the false-alarm interval holds this probability of the ODD decision's
+    false-alarm count; a model that is fine raises each alarm with probability ≤ 1 − level. With k models judged
+    the band's quantile is 1 − (1 − level)/k (Bonferroni): 0.99 fails at most ~2 % of healthy runs, 0.95 up to ~10 %"""
     false_alarm_targets: NonNegativeInt
+    """Task III: in-ODD targets of new seeds (and, from the simulator, new images) on which the ODD decision's
+    false-alarm rate is measured with the threshold of ``reports/task3/metrics.json``; 0: no ODD check"""
 
     @field_validator("source")
     @classmethod
@@ -592,12 +678,15 @@ class MonitorConfig(_Section):
 class Params(_Section):
     """The whole ``params.yaml``, resolved: the default settings with the chosen profile's overrides merged over them."""
 
-    #: the profile whose overrides were merged over the file's settings (``default``: none)
     profile: str
-    #: the root of every random draw in the pipeline
+    """the profile whose overrides are merged over the file's settings: ``default`` (none: the file as it is) or
+    the name of a file of ``profiles/`` (``paper`` for ``profiles/paper.yaml``)"""
     seed: NonNegativeInt
+    """the root of every random draw in the pipeline (components/core/seeding.py)"""
     simulator: SimulatorConfig
     prior: dict[str, tuple[Real, Real]]
+    """the uniform training prior: ``[low, high]`` in physical units for each of the six predicted parameters (the
+    paper's Table 1 ranges by default)"""
     data: DataConfig
     contact_sheet: ContactSheetConfig
     backbones: BackbonesConfig

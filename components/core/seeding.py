@@ -13,17 +13,15 @@ import zlib
 
 import numpy as np
 
+from components.core.checks import whole_number
+
 __all__ = ["seed_sequence", "rng", "derive_seed"]
 
 
 def _key(k: str | int) -> int:
-    if isinstance(k, bool) or not isinstance(k, (str, int, np.integer)):
-        raise TypeError(f"seed keys are strings or non-negative integers, got {k!r}")
     if isinstance(k, str):
         return zlib.crc32(k.encode("utf-8"))
-    if k < 0:
-        raise ValueError(f"seed keys must be non-negative, got {k}")
-    return int(k)
+    return whole_number("a seed key", k, low=0, type_error=TypeError, hint=" or a string")
 
 
 def seed_sequence(seed: int, *keys: str | int) -> np.random.SeedSequence:

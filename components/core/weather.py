@@ -12,6 +12,24 @@ logit per parameter, so that a flow living in ℝ⁶ puts no mass outside the ph
 log-Jacobian :func:`log_abs_det_jacobian` converts densities between the two spaces.
 
 Used by every stage and the ``pidc`` CLI.
+
+References:
+    Halin, Piérard et al., "Physically Interpretable Probabilistic Domain Characterization", Table 1 (the weather
+    parameters, their ranges and the fixed values).
+
+Examples:
+    >>> from components.core import weather
+    >>> weather.SHORT_NAMES
+    ('cloud', 'fog', 'rain', 'sun', 'wind', 'deposit')
+    >>> w = weather.weather_from_theta([20, 0, 60, 35, 10, 40], sun_azimuth_angle=90)
+    >>> len(w), w["fog_distance"]
+    (13, 0.75)
+    >>> weather.theta_from_weather(w).tolist()
+    [20.0, 0.0, 60.0, 35.0, 10.0, 40.0]
+    >>> weather.validate_weather({"sun_altitude_angle": 120})
+    Traceback (most recent call last):
+    ...
+    ValueError: weather parameter 'sun_altitude_angle' = 120 is outside its range [-90, 90] deg
 """
 
 from __future__ import annotations
@@ -50,7 +68,8 @@ class Parameter:
 
     Attributes:
         name: CARLA's keyword (``carla.WeatherParameters`` field).
-        low, high: the physical range (inclusive) in ``unit``.
+        low: the lower end of the physical range (inclusive), in ``unit``.
+        high: the upper end of the physical range (inclusive), in ``unit``; ``inf`` where CARLA sets no bound.
         unit: ``"%"``, ``"deg"`` or ``"m"``/``""`` for the fixed ones.
         role: ``"predicted"``, ``"nuisance"`` or ``"fixed"``.
         short: a short label for plots and tables.
@@ -123,10 +142,19 @@ def _check_value(name: str, value: object, low: float, high: float, where: str =
 def validate_weather(weather: Mapping[str, object], *, where: str = "") -> dict[str, float]:
     """Check a weather mapping (CARLA names → values) and return it as floats.
 
-    Raises ``ValueError`` naming the parameter and its range for an unknown name, a non-number,
-    a non-finite value or a value outside the physical range. Fixed parameters, when given, must
-    equal their fixed value (the renderer and the posteriors are only defined there).
-    ``where`` prefixes messages (e.g. a file name).
+    Fixed parameters, when given, must equal their fixed value (the renderer and the posteriors are only defined
+    there). Missing parameters are allowed here (:func:`complete_weather` requires and fills them).
+
+    Arguments:
+        weather: CARLA parameter names → numbers in physical units (%, degrees, metres).
+        where: a prefix of the error messages (e.g. a file name).
+
+    Returns:
+        The same names → ``float``.
+
+    Raises:
+        ValueError: naming the parameter and its range, for an unknown name, a non-number, a non-finite value, a
+            value outside the physical range or a fixed parameter given another value.
     """
     if not isinstance(weather, Mapping):
         raise ValueError(
@@ -147,7 +175,15 @@ def validate_weather(weather: Mapping[str, object], *, where: str = "") -> dict[
 def complete_weather(weather: Mapping[str, object], *, where: str = "") -> dict[str, float]:
     """Validate ``weather`` and fill the missing parameters: fixed ones take their fixed value.
 
-    The predicted parameters and the sun azimuth are required.
+    Arguments:
+        weather: CARLA parameter names → numbers; the six predicted parameters and the sun azimuth are required.
+        where: a prefix of the error messages (e.g. a file name).
+
+    Returns:
+        All 13 parameters → ``float``, in :data:`ALL_NAMES` order.
+
+    Raises:
+        ValueError: as :func:`validate_weather`, or naming every missing required parameter and its range.
     """
     out = validate_weather(weather, where=where)
     missing = [n for n in PREDICTED + NUISANCE if n not in out]
@@ -168,7 +204,15 @@ def weather_array(weather: Mapping[str, object]) -> np.ndarray:
 
 
 def theta_from_weather(weather: Mapping[str, float] | np.ndarray) -> np.ndarray:
-    """θ (shape ``(6,)`` or ``(n, 6)``) from a weather mapping or from rows in :data:`ALL_NAMES` order."""
+    """θ, the six predicted parameters, from a weather.
+
+    Arguments:
+        weather: a mapping of CARLA names (validated; the predicted parameters required), or an array ``(..., 13)``
+            of rows in :data:`ALL_NAMES` order.
+
+    Returns:
+        θ, ``(6,)`` for a mapping or ``(..., 6)`` for rows, float64 in physical units, in :data:`PREDICTED` order.
+    """
     if isinstance(weather, Mapping):
         w = validate_weather(weather)
         return np.array([w[n] for n in PREDICTED], dtype=np.float64)
@@ -179,7 +223,15 @@ def theta_from_weather(weather: Mapping[str, float] | np.ndarray) -> np.ndarray:
 
 
 def weather_from_theta(theta: Iterable[float], sun_azimuth_angle: float) -> dict[str, float]:
-    """A complete weather mapping from θ (6 values, physical units) and a sun azimuth (degrees)."""
+    """A complete weather mapping from θ and a sun azimuth.
+
+    Arguments:
+        theta: 6 values in :data:`PREDICTED` order, physical units (% and degrees).
+        sun_azimuth_angle: the nuisance sun azimuth, degrees in [0, 360].
+
+    Returns:
+        All 13 parameters → ``float`` (the fixed ones at their values), as :func:`complete_weather`.
+    """
     t = np.asarray(list(theta), dtype=np.float64)
     if t.shape != (len(PREDICTED),):
         raise ValueError(f"θ must have {len(PREDICTED)} values ({', '.join(PREDICTED)}), got shape {t.shape}")
@@ -196,10 +248,23 @@ class Box:
     same class serves boxes of any dimension ``d`` (e.g. 1–2-D toys whose posterior is known).
 
     Attributes:
-        low, high: read-only float64 arrays ``(d,)`` in physical units, finite, ``low < high``.
+        low: read-only float64 array ``(d,)`` of the lower faces, physical units, finite.
+        high: read-only float64 array ``(d,)`` of the upper faces, physical units, finite, ``low < high``.
         names: one name per parameter (used in messages; ``θ0, θ1, …`` when not given). A name that is a
             weather parameter must stay within its physical range.
         units: one unit per parameter (from :data:`PARAMETERS` for weather names, else ``""``).
+
+    Examples:
+        >>> import numpy as np
+        >>> from components.core.weather import Box
+        >>> box = Box.from_mapping({"sun_altitude_angle": (0, 90)})  # daytime only
+        >>> box.dim, box.low[3].item(), box.high[3].item()
+        (6, 0.0, 90.0)
+        >>> round(box.log_volume(), 3)  # log(100⁵ · 90): the uniform prior's density is 1/(100⁵ · 90)
+        27.526
+        >>> theta = box.sample(np.random.default_rng(0), 4)
+        >>> theta.shape, bool(box.contains(theta).all())
+        ((4, 6), True)
     """
 
     low: np.ndarray

@@ -11,7 +11,8 @@
 - :mod:`~components.domains.distances`: scores of an estimate against the truth (unbiased energy distance, W₁ and
   marginal HDRs per parameter) (Task II).
 - :mod:`~components.domains.sweep`: the noise sweep over η (``NoiseSweep``, ``summarize_sweep``).
-- :mod:`~components.domains.task2`, :mod:`~components.domains.task3`: what the ``task2`` and ``task3`` stages run.
+- :mod:`~components.domains.task2`, :mod:`~components.domains.task3`: what the ``task2`` and ``task3`` stages run;
+  :mod:`~components.domains.task2_report`, :mod:`~components.domains.task3_report`: their plots and summaries.
 
 Used by the ``task2`` and ``task3`` stages and the ``pidc`` CLI (``domain``, ``relate``).
 """
@@ -26,5 +27,7 @@ __all__ = [
     "scenarios",
     "sweep",
     "task2",
+    "task2_report",
     "task3",
+    "task3_report",
 ]

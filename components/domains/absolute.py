@@ -14,6 +14,10 @@ Everything here is numpy; the estimator is anything that satisfies :class:`Poste
 torch-free ONNX runtime).
 
 Used by the ``task2`` and ``task3`` stages and the ``pidc`` CLI (``domain``, ``relate``).
+
+References:
+    Halin, Piérard et al., "Physically Interpretable Probabilistic Domain Characterization", Task II (the mixture of
+    posteriors over a weighted bag, the linear temporal filter).
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from scipy.special import logsumexp
 
+from components.core.checks import whole_number
 from components.core.seeding import derive_seed, rng
 
 __all__ = ["Posterior", "Domain", "mixture_of", "normalized_weights", "ExponentialFilter"]
@@ -55,10 +60,19 @@ def _check_posterior(posterior: object) -> None:
 
 
 def normalized_weights(weights: object, n: int, name: str = "weights") -> np.ndarray:
-    """Validate non-negative weights for ``n`` members and return them normalized to sum 1, shape ``(n,)`` float64.
+    """Validate non-negative weights for ``n`` members and normalize them.
 
-    Raises ``ValueError`` naming ``name`` when the length is not ``n``, when a weight is not finite or is negative,
-    or when all weights are zero.
+    Arguments:
+        weights: ``(n,)`` non-negative finite numbers, at least one positive.
+        n: the number of members.
+        name: what the weights are, for the messages.
+
+    Returns:
+        ``(n,)`` float64 weights summing to 1.
+
+    Raises:
+        ValueError: naming ``name``, when the length is not ``n``, a weight is not finite or is negative, or all
+            weights are zero.
     """
     w = np.asarray(weights, dtype=np.float64)
     if w.ndim != 1 or w.shape[0] != n:
@@ -85,21 +99,37 @@ def _as_theta(theta: object) -> np.ndarray:
 
 
 def _check_count(n: object, name: str = "n") -> int:
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise ValueError(f"{name} must be a positive integer, got {n!r}")
-    return int(n)
+    return whole_number(name, n, low=1)
 
 
 class Domain:
     """The estimated weather distribution of a domain, p̂_𝒟(θ) = Σᵢ wᵢ q(θ | xᵢ), from a weighted bag.
 
+    Members with zero weight are kept in :attr:`bag` but never evaluated nor drawn. ``bag_x`` is not copied: do not
+    modify it afterwards.
+
     Arguments:
-        posterior: the estimator q(θ | x) (see :class:`Posterior`).
+        posterior: the estimator q(θ | x) (see :class:`Posterior`), in physical units.
         bag_x: the bag 𝔅 of observations, shape ``(N, ...)`` (images or features, what ``posterior`` takes).
         weights: non-negative weights w(xᵢ), shape ``(N,)``; normalized here. ``None``: equal weights 1/N.
 
-    Members with zero weight are kept in :attr:`bag` but never evaluated nor drawn. ``bag_x`` is not copied: do not
-    modify it afterwards.
+    Examples:
+        A toy estimator q(θ | x) = N(θ; x, 1) in 1-D and a bag of two observations weighted 3 : 1:
+
+        >>> import numpy as np
+        >>> from scipy import stats
+        >>> class Shifted:  # a Posterior: log_prob(θ, x) and sample(x, n, seed), numpy in and out
+        ...     def log_prob(self, theta, x):
+        ...         return stats.norm.logpdf(theta[:, 0], loc=x[:, 0])
+        ...     def sample(self, x, n, seed):
+        ...         return x[:, None, :] + np.random.default_rng(seed).standard_normal((len(x), n, 1))
+        >>> domain = Domain(Shifted(), np.array([[-2.0], [2.0]]), weights=[3, 1])
+        >>> domain.weights.tolist()
+        [0.75, 0.25]
+        >>> round(float(np.exp(domain.log_prob(np.array([[-2.0]]))[0])), 4)  # 0.75 φ(0) + 0.25 φ(4)
+        0.2992
+        >>> domain.sample(1000, seed=0).shape
+        (1000, 1)
     """
 
     def __init__(self, posterior: Posterior, bag_x: np.ndarray, weights: np.ndarray | Sequence[float] | None = None):
@@ -160,9 +190,15 @@ class Domain:
                 yield t0, i0, lq.reshape(idx.size, mb)
 
     def log_prob(self, theta: np.ndarray) -> np.ndarray:
-        """log p̂_𝒟(θⱼ) = logsumexpᵢ [log wᵢ + log q(θⱼ | xᵢ)] for ``theta (m, d)`` → ``(m,)`` (physical units).
+        """log p̂_𝒟(θⱼ) = logsumexpᵢ [log wᵢ + log q(θⱼ | xᵢ)].
 
         All (θⱼ, xᵢ) pairs are evaluated, in calls of a bounded number of pairs and bytes.
+
+        Arguments:
+            theta: ``(m, d)`` points in physical units.
+
+        Returns:
+            ``(m,)`` log-densities per unit of θ; −inf where no member has mass.
         """
         t = _as_theta(theta)
         out = np.full(t.shape[0], -np.inf)
@@ -182,10 +218,17 @@ class Domain:
         return out
 
     def sample(self, n: int, seed: int) -> np.ndarray:
-        """``n`` draws θ ~ p̂_𝒟: members chosen i.i.d. by weight, one posterior draw each; → ``(n, d)``.
+        """``n`` draws θ ~ p̂_𝒟: members chosen i.i.d. by weight, one posterior draw each.
 
         Deterministic in ``seed``: the member choice uses stream ``(seed, "domain", "members")``, and the draws of
         the k-th batch of chosen members use the posterior seed ``derive_seed(seed, "domain", "draws", k)``.
+
+        Arguments:
+            n: the number of draws, ≥ 1.
+            seed: root of the draws' streams.
+
+        Returns:
+            θ ``(n, d)``, float64 in physical units.
         """
         n = _check_count(n)
         chosen = rng(seed, "domain", "members").choice(len(self), size=n, p=self._weights)
@@ -203,9 +246,14 @@ class Domain:
 def mixture_of(domains: Sequence[Domain], weights: np.ndarray | Sequence[float]) -> Domain:
     """The domain Σₖ λₖ p̂_𝒟ₖ as one :class:`Domain` (mixtures of mixtures are mixtures).
 
-    The bag is the concatenation of the domains' bags and member i of domain k gets weight λₖ·wₖᵢ. All domains must
-    share the same posterior object and observation shape; ``weights`` (λ, shape ``(K,)``) are validated and
-    normalized like any weights.
+    The bag is the concatenation of the domains' bags and member i of domain k gets weight λₖ·wₖᵢ.
+
+    Arguments:
+        domains: K ≥ 1 domains sharing the same posterior object and observation shape.
+        weights: λ ``(K,)``, non-negative; validated and normalized like any weights.
+
+    Returns:
+        One :class:`Domain` over the concatenated bags.
     """
     domains = list(domains)
     if not domains:

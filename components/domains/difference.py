@@ -1,7 +1,7 @@
 """Where a target domain differs from the mixture of source domains that Task III fits, parameter by parameter.
 
-Task III's gap δ says *whether* the target's weather is a mixture Σₖ λ̂ₖ p̂_𝒮ₖ of the sources' (:func:`~components.
-domains.relative.relate`); a safety engineer also needs to know *where* it is not — more fog than any source, a
+Task III's gap δ says *whether* the target's weather is a mixture Σₖ λ̂ₖ p̂_𝒮ₖ of the sources'
+(:func:`~components.domains.relative.relate`); a safety engineer also needs to know *where* it is not — more fog than any source, a
 night the sources never saw. Per parameter, between the target's marginal and the fitted mixture's:
 
 * the 1-D Wasserstein distance W₁ = ∫ |F_target(t) − F_mixture(t)| dt (``scipy.stats.wasserstein_distance`` with
@@ -18,7 +18,7 @@ size — and gives per parameter the level they exceed with probability α (the 
 threshold, :class:`~components.domains.relative.OddDetector`), each parameter on its own. As for the threshold, the
 probability is over the draw of the source folders too: a fresh in-ODD target's W₁ holds the source folders' own
 sampling error, which no target held out of them shows, so for one draw of small folders a parameter can exceed its
-level more often than α (tests/test_difference.py; BENCHMARKS.md "`pidc relate` says where").
+level more often than α (tests/test_difference.py; docs/studies/relate-where.md).
 
 Used by the ``pidc relate`` command.
 """
@@ -42,8 +42,10 @@ class ParameterDifference:
     """One parameter's difference between the target and the sources' mixture.
 
     Attributes:
-        name: the parameter (``components.core.weather`` order); unit: its physical unit (``%``, ``deg``).
-        target_median, mixture_median: the marginals' medians (the unit).
+        name: the parameter (``components.core.weather`` order).
+        unit: its physical unit (``%``, ``deg``).
+        target_median: the target's marginal median (the unit).
+        mixture_median: the fitted mixture's marginal median (the unit).
         wasserstein: W₁ between the two marginals (the unit): 0 when they agree.
         share: ``wasserstein`` / the prior box's range of the parameter (0 … 1).
     """
@@ -116,8 +118,8 @@ def parameter_differences(
 
 
 class InOddDifferences:
-    """Each parameter's W₁ on in-ODD targets: the ``on_target`` of :func:`~components.domains.relative.
-    calibrate_on_sources`, called with each calibration target's held-out and kept members of every source and its
+    """Each parameter's W₁ on in-ODD targets: the ``on_target`` of
+    :func:`~components.domains.relative.calibrate_on_sources`, called with each calibration target's held-out and kept members of every source and its
     fitted λ̂; the target's draws are its held-out members', the mixture's the kept members'.
 
     Arguments:

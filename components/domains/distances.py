@@ -28,6 +28,8 @@ import numpy as np
 from scipy.spatial.distance import cdist
 from scipy.stats import wasserstein_distance
 
+from components.core.checks import whole_number
+
 __all__ = ["energy_distance_sq", "wasserstein_1d", "resampled_wasserstein_1d", "MarginalHdr", "marginal_hdr"]
 
 _CHUNK = 2048  # rows of a pairwise-distance block
@@ -146,8 +148,7 @@ def marginal_hdr(estimate: object, truth: object, low: float, high: float, level
         raise ValueError(f"level must be in (0, 1), got {level!r}")
     if not (np.isfinite(low) and np.isfinite(high) and low < high):
         raise ValueError(f"need finite low < high, got [{low}, {high}]")
-    if isinstance(bins, bool) or not isinstance(bins, (int, np.integer)) or bins < 2:
-        raise ValueError(f"bins must be an integer ≥ 2, got {bins!r}")
+    whole_number("bins", bins, low=2)
     edges = np.linspace(low, high, int(bins) + 1)
     counts = np.histogram(np.clip(est, low, high), bins=edges)[0]
     order = np.argsort(-counts, kind="stable")

@@ -36,6 +36,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.special import logsumexp
 
+from components.core.checks import whole_number
 from components.core.seeding import rng
 from components.domains.absolute import _as_theta, normalized_weights
 
@@ -43,7 +44,7 @@ __all__ = ["KernelDomain", "scott_bandwidth", "sources_bandwidth"]
 
 #: (θ, centre) pairs per block of log_prob: 1 MiB of float64, so that the block's passes (distances, exponentials, sums)
 #: stay in the CPU's caches: a Task III experiment in 0.64× the time of 8× larger blocks, the task3 stage's whole sweep
-#: in 0.87× (BENCHMARKS.md "Features and kernel densities in cache-sized pieces"). Each θ's row is computed alone, so
+#: in 0.87× (docs/studies/cache-sized-pieces.md). Each θ's row is computed alone, so
 #: the block size changes at most the rounding of the distances' matrix product (none on the default profile's sweep
 #: with blocks of 2 to 64 rows)
 _CENTRES_PER_CALL = 1 << 17
@@ -129,8 +130,7 @@ class KernelDomain:
 
     def sample(self, n: int, seed: int) -> np.ndarray:
         """``n`` draws θ ~ p̃ → ``(n, d)``: a centre by weight, plus 𝒩(0, diag h²); stream ``(seed, "kernel")``."""
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-            raise ValueError(f"n must be a positive integer, got {n!r}")
+        whole_number("n", n, low=1)
         r = rng(seed, "kernel", "draws")
         p = np.exp(self._log_w - logsumexp(self._log_w))
         idx = r.choice(len(p), size=int(n), p=p)

@@ -19,12 +19,20 @@ a threshold calibrated on in-ODD gaps for a chosen false-alarm rate; :func:`cali
 from the sources themselves (targets of random composition held out of the source bags) for the relative gap.
 
 Used by the ``task3`` stage, the scheduled monitoring and the ``pidc`` CLI (``relate``).
+
+References:
+    Halin, Piérard et al., "Physically Interpretable Probabilistic Domain Characterization", Task III (the mean
+    squared gap, its minimization on the simplex, the baseline by chance); Piérard et al., "Mixture domain
+    adaptation to improve semantic segmentation in real-world surveillance", WACV Workshops 2023 (the mixture of
+    source domains whose weights λ this estimates); Diamond & Boyd, "CVXPY: A Python-embedded modeling language for
+    convex optimization", JMLR 2016, and Agrawal et al., "A rewriting system for convex optimization problems",
+    Journal of Control and Decision 2018 (the solver layer).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
@@ -32,6 +40,7 @@ import cvxpy as cp
 import numpy as np
 from scipy import stats
 
+from components.core.checks import whole_number
 from components.core.seeding import derive_seed, rng
 
 if TYPE_CHECKING:
@@ -216,10 +225,18 @@ _DEFAULT = SimplexLeastSquares()
 
 
 def fit_weights(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, float]:
-    """λ̂ = argmin δ(λ) on the simplex and δ(λ̂) (original units) for densities ``A (n_W, K)``, ``b (n_W,)``.
+    """λ̂ = argmin δ(λ) on the simplex, with the module's shared :class:`SimplexLeastSquares` (CLARABEL, problems
+    reused across calls).
 
-    Uses the module's shared :class:`SimplexLeastSquares` (CLARABEL, problems reused across calls). ``ValueError``
-    for non-finite or negative densities, mismatched shapes, or n_W < K.
+    Arguments:
+        A: source densities Aᵢₖ = p̂_𝒮ₖ(θᵢ), ``(n_W, K)``, physical units, non-negative.
+        b: target densities bᵢ = p̂_𝒯(θᵢ), ``(n_W,)``, in the same units.
+
+    Returns:
+        λ̂ ``(K,)`` on the simplex and δ(λ̂), the mean squared gap in the units of A and b squared.
+
+    Raises:
+        ValueError: non-finite or negative densities, mismatched shapes, or n_W < K.
     """
     lam, gap, _, _ = _DEFAULT.solve(A, b)
     return lam, gap
@@ -239,6 +256,40 @@ def relate(
     Aᵢₖ = p̂_𝒮ₖ(θᵢ), then :class:`SimplexLeastSquares`. With one source, λ̂ = [1] trivially and δ is still the gap
     between the target and that source (no solve). A source may have zero density at some θᵢ (disjoint support); the
     target may not at its own draws.
+
+    Arguments:
+        target: the target domain's characterization p̂_𝒯 (a :class:`Characterization`, e.g. a
+            :class:`components.domains.absolute.Domain`), over θ ``(d,)`` in physical units.
+        sources: the K source domains' characterizations p̂_𝒮ₖ, over the same θ.
+        n_points: n_W, the number of draws of the target where the densities are compared (≥ 1, ≥ K to solve).
+        seed: root of the stream of those draws.
+        solver: the :class:`SimplexLeastSquares` to use (default the module's shared one).
+
+    Returns:
+        The :class:`Relation`: λ̂ ``(K,)``, the gap δ(λ̂) (density², physical units), its scale-free
+        :attr:`Relation.relative_gap` (0 for an exact mixture, ≈ 1 when the sources explain none of the target) and
+        the points and densities behind them. An ODD decision thresholds the gap: :class:`OddDetector`.
+
+    Examples:
+        Two 1-D sources N(−2, 1) and N(2, 1); a target that is their 0.3/0.7 mixture, and one far from both:
+
+        >>> import numpy as np
+        >>> from scipy import stats
+        >>> class Mix:  # a Gaussian mixture of unit variances, as a Characterization
+        ...     def __init__(self, weights, means):
+        ...         self.w, self.m = np.asarray(weights, float), np.asarray(means, float)
+        ...     def log_prob(self, theta):
+        ...         return np.log(stats.norm.pdf(theta[:, :1], self.m) @ self.w)
+        ...     def sample(self, n, seed):
+        ...         r = np.random.default_rng(seed)
+        ...         return r.normal(self.m[r.choice(len(self.w), n, p=self.w)], 1.0)[:, None]
+        >>> sources = [Mix([1], [-2.0]), Mix([1], [2.0])]
+        >>> inside = relate(Mix([0.3, 0.7], [-2.0, 2.0]), sources, n_points=256, seed=0)
+        >>> inside.weights.round(3).tolist(), inside.relative_gap < 1e-9
+        ([0.3, 0.7], True)
+        >>> outside = relate(Mix([1], [8.0]), sources, n_points=256, seed=0)
+        >>> round(outside.relative_gap, 3)  # the sources explain none of this target
+        1.0
     """
     if isinstance(sources, Characterization) or not isinstance(sources, Sequence):
         raise TypeError("sources must be a sequence of characterizations (objects with log_prob and sample)")
@@ -249,8 +300,7 @@ def relate(
         if not isinstance(obj, Characterization):
             raise TypeError(f"{name} must have log_prob(theta) and sample(n, seed), got {type(obj).__name__}")
     k = len(sources)
-    if isinstance(n_points, bool) or not isinstance(n_points, (int, np.integer)) or n_points < 1:
-        raise ValueError(f"n_points must be a positive integer, got {n_points!r}")
+    whole_number("n_points", n_points, low=1)
     if n_points < k:
         raise ValueError(f"n_points = {n_points} cannot determine {k} mixture weights: need n_points ≥ {k}")
     points = np.asarray(target.sample(int(n_points), derive_seed(seed, "relative", "points")), dtype=np.float64)
@@ -281,8 +331,7 @@ def chance_baseline_gap(A: np.ndarray, b: np.ndarray, seed: int, n_draws: int = 
     ``A (n_W, K)``, ``b (n_W,)`` in original units → ``(n_draws,)`` gaps; stream ``(seed, "relative", "chance")``.
     """
     A, b = _check_matrices(A, b)
-    if isinstance(n_draws, bool) or not isinstance(n_draws, (int, np.integer)) or n_draws < 1:
-        raise ValueError(f"n_draws must be a positive integer, got {n_draws!r}")
+    whole_number("n_draws", n_draws, low=1)
     lam = rng(seed, "relative", "chance").dirichlet(np.ones(A.shape[1]), size=int(n_draws))
     return np.atleast_1d(mean_squared_gap(A, b, lam))
 
@@ -314,6 +363,20 @@ class OddDetector:
         threshold: δ above which a target is declared outside the ODD (density², physical units).
         false_alarm_rate: α, the rate the threshold was calibrated for.
         n_calibration: n, the number of calibration gaps.
+
+    References:
+        Vovk, Gammerman & Shafer, "Algorithmic Learning in a Random World", Springer 2005, and Lei et al.,
+        "Distribution-Free Predictive Inference for Regression", JASA 2018 (the split-conformal rank).
+
+    Examples:
+        19 in-ODD gaps calibrate α = 0.05 (the fewest that can: r = ⌈20 · 0.95⌉ = 19, the largest gap):
+
+        >>> import numpy as np
+        >>> detector = OddDetector.calibrate(np.linspace(0.01, 0.19, 19), false_alarm_rate=0.05)
+        >>> detector.rank, detector.threshold
+        (19, 0.19)
+        >>> detector.decide(0.5), detector.decide(0.1)  # True: outside the ODD
+        (True, False)
     """
 
     threshold: float
@@ -367,8 +430,7 @@ def false_alarm_interval(
     """The central interval ``[low, high]`` of the number of false alarms among ``n`` in-ODD targets that holds at least
     ``level`` of its distribution (each tail ≤ (1 − level)/2), and the distribution's name: BB(n, m + 1 − r, r) for a
     threshold at rank ``rank`` = r of ``calibration_targets`` = m calibration gaps, else the binomial B(n, α)."""
-    if isinstance(n, bool) or int(n) != n or n < 1:
-        raise ValueError(f"n must be a positive number of targets, got {n!r}")
+    whole_number("n", n, low=1, floats=True, hint=" (a number of targets)")
     if not 0.0 < float(alpha) < 1.0:
         raise ValueError(f"alpha must be in (0, 1), got {alpha!r}")
     if not 0.0 < float(level) < 1.0:
@@ -454,17 +516,47 @@ def calibrate_on_sources(
             shrinks as the bag grows); default half the mean size of the sources.
         solver: the :class:`SimplexLeastSquares` to use (default the module's shared one).
         progress: show a tqdm bar over the calibration targets.
-        draws, bandwidth: with both, every bag (the held-out target and the reduced sources) is the
+        draws: with ``bandwidth``, every bag (the held-out target and the reduced sources) is the
             :class:`components.domains.kernel.KernelDomain` of its members' fixed posterior draws — ``draws[k]``
-            ``(Nₖ, m, d)``, one row per member of source k — with the kernel bandwidth ``(d,)``: the ``task3`` stage's
-            smoothing, for a target related to kernel densities of the sources with that bandwidth. Without them, the
-            exact mixtures of posteriors.
+            ``(Nₖ, m, d)``, one row per member of source k — the ``task3`` stage's smoothing, for a target related to
+            kernel densities of the sources. Without them, the exact mixtures of posteriors.
+        bandwidth: the kernel bandwidth ``(d,)`` of ``draws``, physical units; given with ``draws`` or not at all.
         on_target: called after each calibration target is related, with ``(held, kept, weights)``: per source the
             indices of its members held out into the target and of those kept, and the target's fitted λ̂ ``(K,)``
             (e.g. to measure, on the same in-ODD targets, another statistic of the target against the sources).
+
+    Returns:
+        The :class:`OddDetector` whose threshold is on the relative gap (unitless), for false-alarm rate α.
     """
+    sources = _bags_to_hold_out_from(sources)
+    kernel = _kernel_inputs(sources, draws, bandwidth)
+    alpha, n_targets = _calibration_rate(false_alarm_rate, n_targets)
+    plan = _HoldOut.of(sources, target_size, kernel)
+    gaps = np.empty(n_targets)
+    for t in _calibration_steps(n_targets, progress):
+        target, reduced, outs, keeps = plan.draw(rng(seed, "relative", "calibration", t))
+        rel = relate(
+            target, reduced, n_points, derive_seed(seed, "relative", "calibration", t, "relate"), solver=solver
+        )
+        gaps[t] = rel.relative_gap
+        if on_target is not None:
+            on_target(outs, keeps, rel.weights)
+    return OddDetector.calibrate(gaps, alpha)
+
+
+def _calibration_rate(false_alarm_rate: float, n_targets: int) -> tuple[float, int]:
+    """``(α, n_targets)`` checked: α ∈ (0, 1), and enough calibration targets for a split-conformal rank at α."""
+    alpha = float(false_alarm_rate)
+    if not (0.0 < alpha < 1.0):
+        raise ValueError(f"false_alarm_rate must be in (0, 1), got {false_alarm_rate!r}")
+    need = math.ceil((1.0 - alpha) / alpha - 1e-9)
+    return alpha, whole_number("n_targets", n_targets, low=need, hint=f" for false_alarm_rate {alpha}")
+
+
+def _bags_to_hold_out_from(sources: Sequence[Domain]) -> list[Domain]:
+    """``sources`` as a list, checked to be bags of one posterior and one observation shape (the calibration targets
+    mix members of all of them under one estimator)."""
     from components.domains.absolute import Domain
-    from components.domains.kernel import KernelDomain
 
     sources = list(sources)
     if not sources:
@@ -481,58 +573,79 @@ def calibrate_on_sources(
                 f"sources[{k}] uses another posterior or observation shape than sources[0]: the "
                 "calibration targets mix members of all sources under one estimator"
             )
-    kernel = _kernel_inputs(sources, draws, bandwidth)
-    alpha = float(false_alarm_rate)
-    if not (0.0 < alpha < 1.0):
-        raise ValueError(f"false_alarm_rate must be in (0, 1), got {false_alarm_rate!r}")
-    need = math.ceil((1.0 - alpha) / alpha - 1e-9)
-    if isinstance(n_targets, bool) or not isinstance(n_targets, (int, np.integer)) or n_targets < need:
-        raise ValueError(f"n_targets must be an integer ≥ {need} for false_alarm_rate {alpha}, got {n_targets!r}")
-    if target_size is None:
-        target_size = max(1, round(float(np.mean([len(s) for s in sources])) / 2))
-    if isinstance(target_size, bool) or not isinstance(target_size, (int, np.integer)) or target_size < 1:
-        raise ValueError(f"target_size must be a positive integer, got {target_size!r}")
-    positive = [np.flatnonzero(s.weights > 0) for s in sources]
-    capacity = np.array([p.size // 2 for p in positive], dtype=np.int64)
-    if capacity.sum() == 0:
-        raise ValueError(
-            "the sources are too small to hold out a calibration target: at least one needs two "
-            "members of positive weight"
-        )
-    k = len(sources)
-    steps = range(int(n_targets))
-    if progress:
-        from tqdm.auto import tqdm
+    return sources
 
-        steps = tqdm(steps, desc="calibrating the ODD threshold", unit="target")
-    gaps = np.empty(int(n_targets))
-    for t in steps:
-        r = rng(seed, "relative", "calibration", t)
-        counts = _held_out_counts(r.dirichlet(np.ones(k)), capacity, int(target_size), r)
+
+def _calibration_steps(n_targets: int, progress: bool) -> Iterable[int]:
+    """The indices of the calibration targets, with a tqdm bar when ``progress``."""
+    steps = range(n_targets)
+    if not progress:
+        return steps
+    from tqdm.auto import tqdm
+
+    return tqdm(steps, desc="calibrating the ODD threshold", unit="target")
+
+
+@dataclass(frozen=True)
+class _HoldOut:
+    """How :func:`calibrate_on_sources` holds calibration targets out of the sources.
+
+    ``positive[k]``: the members of source k of positive weight; ``capacity[k]``: at most half of them go into one
+    target; ``size``: the target's members (``target_size``); ``kernel``: ``(draws per source, bandwidth)`` for
+    kernel-density bags, or None for the exact mixtures of posteriors.
+    """
+
+    sources: list[Domain]
+    positive: list[np.ndarray]
+    capacity: np.ndarray
+    size: int
+    kernel: tuple[list[np.ndarray], np.ndarray] | None
+
+    @classmethod
+    def of(
+        cls, sources: list[Domain], target_size: int | None, kernel: tuple[list[np.ndarray], np.ndarray] | None
+    ) -> _HoldOut:
+        """The plan for ``sources``; ``target_size`` None: half the mean size of the sources."""
+        if target_size is None:
+            target_size = max(1, round(float(np.mean([len(s) for s in sources])) / 2))
+        size = whole_number("target_size", target_size, low=1)
+        positive = [np.flatnonzero(s.weights > 0) for s in sources]
+        capacity = np.array([p.size // 2 for p in positive], dtype=np.int64)
+        if capacity.sum() == 0:
+            raise ValueError(
+                "the sources are too small to hold out a calibration target: at least one needs two "
+                "members of positive weight"
+            )
+        return cls(sources, positive, capacity, size, kernel)
+
+    def draw(
+        self, r: np.random.Generator
+    ) -> tuple[Characterization, list[Characterization], list[np.ndarray], list[np.ndarray]]:
+        """One calibration target from the stream ``r``: ``(target, reduced sources, held, kept)``, with per source
+        the indices of its members held out into the target and of those kept (steps 1 and 2 of
+        :func:`calibrate_on_sources`)."""
+        from components.domains.absolute import Domain
+        from components.domains.kernel import KernelDomain
+
+        counts = _held_out_counts(r.dirichlet(np.ones(len(self.sources))), self.capacity, self.size, r)
         held, reduced, outs, keeps = [], [], [], []
-        for j, (s, members, m) in enumerate(zip(sources, positive, counts, strict=False)):
+        for j, (s, members, m) in enumerate(zip(self.sources, self.positive, counts, strict=False)):
             w = s.weights[members]
             out = r.choice(members, size=int(m), replace=False, p=w / w.sum()) if m else members[:0]
             keep = np.setdiff1d(np.arange(len(s)), out)
             outs.append(out)
             keeps.append(keep)
-            if kernel is None:
+            if self.kernel is None:
                 held.append(s.bag[out])
                 reduced.append(Domain(s.posterior, s.bag[keep], s.weights[keep]))
             else:
-                held.append(kernel[0][j][out])
-                reduced.append(KernelDomain(kernel[0][j][keep], s.weights[keep], kernel[1]))
-        if kernel is None:
-            target: Characterization = Domain(sources[0].posterior, np.concatenate(held))
+                held.append(self.kernel[0][j][out])
+                reduced.append(KernelDomain(self.kernel[0][j][keep], s.weights[keep], self.kernel[1]))
+        if self.kernel is None:
+            target: Characterization = Domain(self.sources[0].posterior, np.concatenate(held))
         else:
-            target = KernelDomain(np.concatenate(held), None, kernel[1])
-        rel = relate(
-            target, reduced, n_points, derive_seed(seed, "relative", "calibration", t, "relate"), solver=solver
-        )
-        gaps[t] = rel.relative_gap
-        if on_target is not None:
-            on_target(outs, keeps, rel.weights)
-    return OddDetector.calibrate(gaps, alpha)
+            target = KernelDomain(np.concatenate(held), None, self.kernel[1])
+        return target, reduced, outs, keeps
 
 
 def _kernel_inputs(

@@ -30,7 +30,8 @@ class GaussianMixtureWeather:
     Attributes:
         fixed: the fixed predicted parameters ``{name: value}`` (physical units; every name but ``free``).
         weights: ``(k,)`` mixture weights (normalized here).
-        means: ``(k, 2)`` component means of ``free``; stds: ``(k, 2)`` standard deviations.
+        means: ``(k, 2)`` component means of ``free``, physical units.
+        stds: ``(k, 2)`` component standard deviations, physical units.
         box: the prior box (truncation).
         free: the two mixture parameters.
     """

@@ -41,6 +41,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.stats import binomtest
 
+from components.core.checks import whole_number
 from components.core.seeding import derive_seed, rng
 from components.domains.absolute import Domain, Posterior
 from components.domains.kernel import KernelDomain, sources_bandwidth
@@ -88,16 +89,19 @@ class FalseAlarmCheck:
 
     Attributes:
         targets: the target kind (``"paper"`` or ``"fresh"``).
-        n: in-ODD targets decided on; flagged: those declared out of the ODD.
+        n: in-ODD targets decided on.
+        flagged: those declared out of the ODD.
         rate: flagged / n, the measured false-alarm rate.
-        ci_low, ci_high: its Clopper–Pearson interval at :data:`CONFIDENCE` (``scipy.stats.binomtest``): where the
-            decision's own rate lies.
+        ci_low: the lower end of its Clopper–Pearson interval at :data:`CONFIDENCE` (``scipy.stats.binomtest``):
+            where the decision's own rate lies.
+        ci_high: the upper end of that interval.
         alpha: the rate α the threshold was calibrated for.
-        calibrated_low, calibrated_high: the central :data:`CONFIDENCE` interval of the count a perfectly calibrated
+        calibrated_low: the lower end of the central :data:`CONFIDENCE` interval of the count a perfectly calibrated
             decision flags among n targets exchangeable with its calibration targets
             (:func:`~components.domains.relative.false_alarm_interval`): beta-binomial for a threshold at rank r of m
             calibration gaps, which holds the threshold's own spread (the binomial of α alone is too narrow: with
             m = 400 it would call a calibrated decision's count too high in ~7 % of runs, not 2.5 %).
+        calibrated_high: the upper end of that interval.
         calibrated_distribution: that count's distribution, e.g. ``"beta-binomial(n=200, m+1−r=20, r=381)"``.
     """
 
@@ -196,12 +200,7 @@ class NoiseSweep:
         if smoothing == "none":
             self.sources: list[Characterization] = [Domain(posterior, b) for b in bags[1:]]
             return
-        if (
-            isinstance(draws_per_image, bool)
-            or not isinstance(draws_per_image, (int, np.integer))
-            or draws_per_image < 2
-        ):
-            raise ValueError(f"draws_per_image must be an integer ≥ 2, got {draws_per_image!r}")
+        whole_number("draws_per_image", draws_per_image, low=2)
         if not (isinstance(bandwidth_scale, (int, float)) and 0 < bandwidth_scale < float("inf")):
             raise ValueError(f"bandwidth_scale must be a positive number, got {bandwidth_scale!r}")
         self._draws = np.asarray(
@@ -282,8 +281,7 @@ class NoiseSweep:
         """``detector`` on ``n_targets`` in-ODD targets (η = 0; fresh ones when ``fresh``) of new seeds — neither
         :meth:`calibrate`'s nor :meth:`run`'s for the same ``seed`` — drawn exactly as the calibration targets are;
         returns the check and their relative gaps."""
-        if isinstance(n_targets, bool) or not isinstance(n_targets, (int, np.integer)) or n_targets < 1:
-            raise ValueError(f"n_targets must be a positive integer, got {n_targets!r}")
+        whole_number("n_targets", n_targets, low=1)
         s = derive_seed(seed, "sweep", "false-alarm-check")
         gaps = np.array([self.run(0.0, r, s, fresh).relative_gap for r in range(int(n_targets))])
         kind = "fresh" if fresh else "paper"

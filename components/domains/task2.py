@@ -2,9 +2,10 @@
 
 Used by the ``task2`` stage. As in the paper, the domain fixes every weather parameter but fog density and
 precipitation — the four other predicted ones (``task2.fixed``) and the sun azimuth (``task2.sun_azimuth_angle``) —
-and those two follow a mixture of Gaussians (``task2.modes``, :class:`~components.domains.scenarios.
-GaussianMixtureWeather`). The bag's characterization p̂_𝒟(θ) = Σᵢ wᵢ q(θ | xᵢ) (:class:`~components.domains.absolute.
-Domain`) is compared with the true distribution P_𝒟(θ), and with the uniform prior as the no-information reference:
+and those two follow a mixture of Gaussians (``task2.modes``,
+:class:`~components.domains.scenarios.GaussianMixtureWeather`). The bag's characterization p̂_𝒟(θ) = Σᵢ wᵢ q(θ | xᵢ)
+(:class:`~components.domains.absolute.Domain`) is compared with the true distribution P_𝒟(θ), and with the uniform
+prior as the no-information reference:
 
 * energy distances (:func:`~components.domains.distances.energy_distance_sq`, unbiased U-statistic of D², prior-width
   units) estimate→truth and prior→truth and their ratio, over the six parameters and over the two free ones, beside
@@ -19,9 +20,15 @@ Domain`) is compared with the true distribution P_𝒟(θ), and with the uniform
 The estimate is ``task2.estimate``: the mixture itself, or its deconvolution (:func:`characterize`,
 :mod:`components.domains.deconvolution`: the bag's maximum-likelihood weather distribution, of which the mixture is the
 first EM step), scored the same way.
+
+References:
+    Halin, Piérard et al., "Physically Interpretable Probabilistic Domain Characterization", Task II (the bag, the
+    true distribution of fog density and precipitation, the mixture of posteriors).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -47,6 +54,8 @@ __all__ = [
     "render_bag",
     "characterize",
     "task2_metrics",
+    "BagScores",
+    "score_bag",
 ]
 
 #: draws per distribution entering the energy distances (O(n²) pairs)
@@ -58,7 +67,15 @@ HDR_BINS = 100
 
 
 def true_distribution(params: Params) -> GaussianMixtureWeather:
-    """P_𝒟(θ): the fixed parameters and the Gaussian mixture of ``task2``, truncated to the prior box."""
+    """P_𝒟(θ): the fixed parameters and the Gaussian mixture of ``task2``, truncated to the prior box.
+
+    Arguments:
+        params: the configuration (``task2.fixed``, ``task2.modes``, the prior box).
+
+    Returns:
+        The true weather distribution of the Task II domain: ``sample(n, rng) → (n, 6)``, physical units; its free
+            parameters are fog density and precipitation.
+    """
     t = params.task2
     return GaussianMixtureWeather(
         fixed=t.fixed,
@@ -83,10 +100,18 @@ def render_bag(params: Params, simulator) -> tuple[np.ndarray, np.ndarray]:
 
 
 def characterize(domain: Domain, params: Params) -> tuple[object, dict]:
-    """The estimate ``task2.estimate`` of the bag's weather distribution (a :class:`Domain` or the deconvolution's
-    kernel density, both with ``sample(n, seed)`` and ``log_prob(θ)``) and what it took: for ``deconvolved`` the EM
-    steps chosen (1 = the mixture), the held-out log likelihood per image gained over the mixture (nats), the kernel
-    bandwidth (physical units) and the support's effective size."""
+    """The estimate ``task2.estimate`` of the bag's weather distribution, and what it took.
+
+    Arguments:
+        domain: the bag as the mixture of its posteriors.
+        params: the configuration (``task2.estimate``, ``task2.deconvolution``, the seed).
+
+    Returns:
+        The estimate (``domain`` itself for ``mixture``, else the deconvolution's kernel density; both with
+            ``sample(n, seed)`` and ``log_prob(θ)``) and what it took: empty for the mixture; for ``deconvolved`` the
+            EM steps chosen (1 = the mixture), the held-out log likelihood per image gained over the mixture (nats),
+            the kernel bandwidth (physical units) and the support's effective size.
+    """
     t = params.task2
     if t.estimate == "mixture":
         return domain, {}
@@ -125,11 +150,35 @@ def reference_draws(params: Params) -> tuple[np.ndarray, np.ndarray]:
 
 
 def task2_metrics(domain, params: Params, model_name: str) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
-    """Score the characterization ``domain`` of the bag (anything with ``sample(n, seed)`` and ``log_prob(θ)`` in
-    physical units) against the true distribution.
+    """Score the characterization ``domain`` of the bag against the true distribution (the scores of the module's
+    description; the layout of ``reports/task2/metrics.json``: docs/pipeline.md).
 
-    Returns ``(metrics, estimate, truth, prior)``: ``task2.samples`` draws of each (physical units, ``(S, 6)``) and
-    the metrics (see the module docstring; README, Task II, for the layout of ``reports/task2/metrics.json``).
+    Arguments:
+        domain (object): the characterization, anything with ``sample(n, seed) → (n, 6)`` and ``log_prob(θ (m, 6))
+            → (m,)`` in physical units (a :class:`~components.domains.absolute.Domain`, the deconvolution's density).
+        params: the configuration (``task2``, the prior box, the seed).
+        model_name: the model's id, recorded in the metrics.
+
+    Returns:
+        ``(metrics, estimate, truth, prior)``: the metrics (a JSON-ready dict), and ``task2.samples`` draws
+            ``(S, 6)`` of the estimate, the true distribution and the prior, in physical units.
+
+    Examples:
+        The prior itself as the characterization scores as the prior (ratios of 1, no information):
+
+        >>> import numpy as np
+        >>> from components.core.config import load_params
+        >>> params = load_params("params.yaml")  # the repository's, from its root
+        >>> class Prior:
+        ...     def sample(self, n, seed):
+        ...         return params.box.sample(np.random.default_rng(seed), n)
+        ...     def log_prob(self, theta):
+        ...         return params.box.log_prob(theta)
+        >>> metrics, estimate, truth, prior = task2_metrics(Prior(), params, "prior")
+        >>> estimate.shape == truth.shape == (params.task2.samples, 6)
+        True
+        >>> round(metrics["energy_distance_sq"]["free"]["ratio"], 1)  # estimate→truth over prior→truth
+        1.0
     """
     t = params.task2
     box = params.box
@@ -149,6 +198,41 @@ def task2_metrics(domain, params: Params, model_name: str) -> tuple[dict, np.nda
     t_two = truth_dist.sample(k, seeding.rng(params.seed, "task2", "truth", "second"))
     free = [box.names.index(n) for n in truth_dist.free]
 
+    metrics = {
+        "model": model_name,
+        "images": t.images,
+        "sun_azimuth_angle": t.sun_azimuth_angle,
+        "samples": t.samples,
+        "hdr_level": t.hdr_level,
+        "true_mass_in_hdr": diagnostics.hdr_mass(lp_estimate, lp_truth, t.hdr_level),
+        "log_density_at_modes": [float(v) for v in lp_modes],
+        "log_density_median_own_draws": float(np.median(lp_estimate)),
+        "mode_density_quantile": [float(np.mean(lp_estimate <= v)) for v in lp_modes],
+        "energy_distance_sq": {
+            "draws": k,
+            "all": _energy(e_sub, t_sub, t_two, p_sub, box.width),
+            "free": _energy(e_sub[:, free], t_sub[:, free], t_two[:, free], p_sub[:, free], box.width[free]),
+        },
+        "parameters": _per_parameter(estimate, truth, prior, params),
+    }
+    return metrics, estimate, truth, prior
+
+
+def _per_parameter(estimate: np.ndarray, truth: np.ndarray, prior: np.ndarray, params: Params) -> dict:
+    """:func:`task2_metrics`' figures per parameter, in its physical unit.
+
+    Arguments:
+        estimate: draws of the estimate, ``(S, 6)`` in physical units.
+        truth: as many draws of the true distribution.
+        prior: as many draws of the prior.
+        params: the configuration (``task2.hdr_level``, ``task2.fixed``, the prior box).
+
+    Returns:
+        parameter → its unit, fixed value (None for a free one), the estimate's median and its error from the fixed
+        value, W₁ estimate→truth and prior→truth and their ratio, the marginal HDR's width (and share of the prior
+        range) and the share of the true mass inside it.
+    """
+    t, box = params.task2, params.box
     w_est, w_prior = wasserstein_1d(estimate, truth), wasserstein_1d(prior, truth)
     per_parameter = {}
     for i, name in enumerate(box.names):
@@ -167,24 +251,7 @@ def task2_metrics(domain, params: Params, model_name: str) -> tuple[dict, np.nda
             "hdr_width_share": hdr.width_share,
             "true_mass_in_hdr": hdr.mass_inside,
         }
-    metrics = {
-        "model": model_name,
-        "images": t.images,
-        "sun_azimuth_angle": t.sun_azimuth_angle,
-        "samples": t.samples,
-        "hdr_level": t.hdr_level,
-        "true_mass_in_hdr": diagnostics.hdr_mass(lp_estimate, lp_truth, t.hdr_level),
-        "log_density_at_modes": [float(v) for v in lp_modes],
-        "log_density_median_own_draws": float(np.median(lp_estimate)),
-        "mode_density_quantile": [float(np.mean(lp_estimate <= v)) for v in lp_modes],
-        "energy_distance_sq": {
-            "draws": k,
-            "all": _energy(e_sub, t_sub, t_two, p_sub, box.width),
-            "free": _energy(e_sub[:, free], t_sub[:, free], t_two[:, free], p_sub[:, free], box.width[free]),
-        },
-        "parameters": per_parameter,
-    }
-    return metrics, estimate, truth, prior
+    return per_parameter
 
 
 def width_floor(posterior, contexts: np.ndarray, theta: np.ndarray, params: Params) -> dict:
@@ -210,29 +277,25 @@ def width_floor(posterior, contexts: np.ndarray, theta: np.ndarray, params: Para
       own that shifts its bootstrap distribution up; the paired difference cancels most of it.)
 
     Arguments:
-        posterior: ``sample(contexts, n, seed) → (N, n, d)`` draws in physical units (a registry model's
-            ``posterior.on_context()``).
-        contexts: the bag's ``(N, …)`` contexts; theta: their true weather ``(N, d)``.
+        posterior (object): anything with ``sample(contexts, n, seed) → (N, n, d)``, draws in physical units (a
+            registry model's ``posterior.on_context()``).
+        contexts: the bag's ``(N, …)`` contexts.
+        theta: their true weather ``(N, d)``, physical units.
+        params: the configuration (``task2.width_floor``, the prior box, the seed).
 
-    Returns ``{"draws", "wasserstein_ratio": {f"{s:g}": {parameter: ratio}}, "calibrated": {f"{s:g}": {parameter:
-    ratio}}, "mixture": {parameter: ratio}, "interval": {"replicates", "confidence", "mixture_minus_calibrated":
-    {parameter: {"difference", "low", "high"}}}, "posterior_sd_median": {parameter: the median over images of the
-    posterior standard deviation, physical units}}``; the truth's and the prior's draws are
-    :func:`reference_draws`, as for :func:`task2_metrics`, so ``s`` → 0 leaves the bag's own sampling distance.
+    Returns:
+        ``{"draws", "wasserstein_ratio": {f"{s:g}": {parameter: ratio}}, "calibrated": {f"{s:g}": {parameter:
+            ratio}}, "mixture": {parameter: ratio}, "interval": {"replicates", "confidence",
+            "mixture_minus_calibrated": {parameter: {"difference", "low", "high"}}}, "posterior_sd_median":
+            {parameter: the median over images of the posterior standard deviation, physical units}}``; the truth's
+            and the prior's draws are :func:`reference_draws`, as for :func:`task2_metrics`, so ``s`` → 0 leaves the
+            bag's own sampling distance.
     """
     c, box = params.task2.width_floor, params.box
     theta = np.asarray(theta, dtype=np.float64)
-    draws = np.asarray(posterior.sample(contexts, c.draws, seeding.derive_seed(params.seed, "task2", "width-floor")))
-    if draws.shape != (theta.shape[0], c.draws, theta.shape[1]):
-        raise ValueError(
-            f"posterior draws have shape {draws.shape}, expected {(theta.shape[0], c.draws, theta.shape[1])}"
-        )
+    draws, again = _paired_draws(posterior, contexts, theta, params)
     median = np.median(draws, axis=1, keepdims=True)
     spread = draws - median
-    # independent draws of the same posteriors (their own stream): where a calibrated posterior's median would lie
-    again = np.asarray(posterior.sample(contexts, c.draws, seeding.derive_seed(params.seed, "task2", "width-floor", 2)))
-    if again.shape != draws.shape:
-        raise ValueError(f"posterior draws have shape {again.shape}, expected {draws.shape}")
     miss = again - median
     truth, prior = reference_draws(params)
     w_prior = wasserstein_1d(prior, truth)
@@ -268,6 +331,30 @@ def width_floor(posterior, contexts: np.ndarray, theta: np.ndarray, params: Para
     }
 
 
+def _paired_draws(posterior, contexts: np.ndarray, theta: np.ndarray, params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`width_floor`'s two independent sets of ``task2.width_floor.draws`` draws of every image's posterior,
+    each from its own seeded stream (the second: where a calibrated posterior's median would lie).
+
+    Arguments:
+        posterior (object): anything with ``sample(contexts, n, seed) → (N, n, d)``, draws in physical units.
+        contexts: the bag's ``(N, …)`` contexts.
+        theta: their true weather ``(N, d)`` (its shape is checked against the draws').
+        params: the configuration (``task2.width_floor.draws``, the seed).
+
+    Returns:
+        ``(draws, again)``, each ``(N, n, d)`` in physical units; ``ValueError`` naming a shape that differs.
+    """
+    n = params.task2.width_floor.draws
+    draws = np.asarray(posterior.sample(contexts, n, seeding.derive_seed(params.seed, "task2", "width-floor")))
+    if draws.shape != (theta.shape[0], n, theta.shape[1]):
+        raise ValueError(f"posterior draws have shape {draws.shape}, expected {(theta.shape[0], n, theta.shape[1])}")
+    # independent draws of the same posteriors (their own stream): where a calibrated posterior's median would lie
+    again = np.asarray(posterior.sample(contexts, n, seeding.derive_seed(params.seed, "task2", "width-floor", 2)))
+    if again.shape != draws.shape:
+        raise ValueError(f"posterior draws have shape {again.shape}, expected {draws.shape}")
+    return draws, again
+
+
 def _difference_interval(
     first: np.ndarray,
     second: np.ndarray,
@@ -300,3 +387,55 @@ def _difference_interval(
     )
     low, high = np.quantile(reps, [0.025, 0.975], axis=0)
     return low, high
+
+
+@dataclass(frozen=True)
+class BagScores:
+    """The characterization of a bag, scored (:func:`score_bag`).
+
+    Attributes:
+        metrics: what ``reports/task2/metrics.json`` holds: ``estimate`` (``task2.estimate``), the scores of
+            :func:`task2_metrics`, with a deconvolved estimate ``deconvolution`` (the steps it took) and ``mixture``
+            (the mixture's scores), and ``width_floor`` (:func:`width_floor`).
+        how: what the estimate took (:func:`characterize`; empty for the mixture).
+        estimate: ``task2.samples`` draws of the estimate, ``(S, 6)`` in physical units.
+        truth: as many draws of the true distribution.
+        prior: as many draws of the prior.
+        mixture: with a deconvolved estimate, as many draws of the mixture; else None.
+    """
+
+    metrics: dict
+    how: dict
+    estimate: np.ndarray
+    truth: np.ndarray
+    prior: np.ndarray
+    mixture: np.ndarray | None
+
+
+def score_bag(posterior, contexts: np.ndarray, theta: np.ndarray, params: Params, model_name: str) -> BagScores:
+    """Characterize the equally weighted bag of images whose contexts are ``contexts`` and score the estimate
+    ``task2.estimate`` against the true distribution; a deconvolved estimate is scored beside the mixture it starts
+    from; the width floor last.
+
+    Arguments:
+        posterior (object): the model's posterior, with ``on_context()`` (the posterior of a context,
+            :class:`~components.domains.absolute.Domain`).
+        contexts: the bag's contexts, one row per image (the embedding's output).
+        theta: the bag's true weather, ``(n, 6)`` in physical units.
+        params: the project's settings (``task2``, ``seed``, the prior box).
+        model_name: the model's id (recorded in the metrics).
+
+    Returns:
+        The scores and the draws they compare (:class:`BagScores`).
+    """
+    domain = Domain(posterior.on_context(), contexts)  # equally weighted bag
+    characterization, how = characterize(domain, params)
+    scores, estimate, truth, prior = task2_metrics(characterization, params, model_name)
+    metrics = {"estimate": params.task2.estimate, **scores}
+    mixture = None
+    if params.task2.estimate != "mixture":
+        metrics["deconvolution"] = how
+        metrics["mixture"], mixture, _, _ = task2_metrics(domain, params, model_name)
+        del metrics["mixture"]["model"]
+    metrics["width_floor"] = width_floor(domain.posterior, contexts, theta, params)
+    return BagScores(metrics, how, estimate, truth, prior, mixture)

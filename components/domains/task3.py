@@ -20,6 +20,10 @@ refused with an error naming the bags and the key of params.yaml.
 The metrics name every per-η figure by the kind of target it was measured on: ``<figure>_paper`` (the paper's
 targets, whose in-ODD part reuses the sources' images) and ``<figure>_fresh`` (other images of the sources' weather),
 in ``metrics.json`` (``eta``), in the rows of ``eta.json`` and, at step 100·η, in MLflow.
+
+References:
+    Halin, Piérard et al., "Physically Interpretable Probabilistic Domain Characterization", Task III (the source and
+    out-of-ODD bags, the targets at noise level η, d_E and the mean squared gap against η).
 """
 
 from __future__ import annotations
@@ -125,10 +129,37 @@ def bag_of(bags: Mapping[str, BagConfig], theta: np.ndarray) -> np.ndarray:
 
 
 def split_bags(bags: Mapping[str, BagConfig], theta: np.ndarray, fresh: bool) -> BagSplit:
-    """The disjoint bags and fresh pools of the test images of true weathers ``theta (N, 6)`` (module docstring).
+    """The disjoint bags and fresh pools of the test images (the rules of the module's description).
 
-    ``bags``: ``task3.bags`` (b0 first, then the sources). ``fresh``: whether fresh targets are run, so every source
-    needs a pool at least as large as its bag. ``ValueError`` naming ``task3.bags.<name>…`` otherwise.
+    Arguments:
+        bags: ``task3.bags``: b0 (out of the ODD) first, then the sources b1, b2, …
+        theta: the test images' true weathers ``(N, 6)``, physical units.
+        fresh: whether fresh targets are run, so every source needs a pool at least as large as its bag.
+
+    Returns:
+        The :class:`BagSplit`: per bag its test-image indices, per source its fresh pool.
+
+    Raises:
+        ValueError: naming ``task3.bags.<name>…``, for a sub-box without an image of its own or a pool smaller than
+            its bag.
+
+    Examples:
+        1 000 test weathers from the prior; b2's fog range overlaps b1's, whose images it leaves to b1:
+
+        >>> import numpy as np
+        >>> from components.core.config import BagConfig
+        >>> from components.core.weather import Box
+        >>> theta = Box.full().sample(np.random.default_rng(0), 1000)
+        >>> bags = {
+        ...     "b0": BagConfig(box={"fog_density": (80, 100)}, max_images=50),
+        ...     "b1": BagConfig(box={"fog_density": (0, 20)}, max_images=50),
+        ...     "b2": BagConfig(box={"fog_density": (10, 40)}, max_images=50),
+        ... }
+        >>> split = split_bags(bags, theta, fresh=True)
+        >>> split.sizes(), {name: pool.size for name, pool in split.pools.items()}
+        ({'b0': 50, 'b1': 50, 'b2': 50}, {'b1': 153, 'b2': 149})
+        >>> split.given_to  # b2's sub-box holds 96 images of b1
+        {'b2': {'b1': 96}}
     """
     owner = bag_of(bags, theta)
     members, pools, counts, given = {}, {}, {}, {}
@@ -176,10 +207,19 @@ def bag_members(params: Params, theta: np.ndarray) -> BagSplit:
 def build_sweep(
     params: Params, paths: ProjectPaths, model: RegisteredPosterior, fresh_inputs: Sequence[np.ndarray] | None = None
 ) -> tuple[NoiseSweep, BagSplit, str]:
-    """The sweep of the project: ``model``'s contexts of the bags' test images (from the feature cache; open the model
-    with one onnxruntime thread: many small calls). ``fresh_inputs``: the posterior inputs of other images of each
-    source's weather (b1, b2, … in order), the fresh pools instead of the test split's (scheduled monitoring: new
-    images). Returns the sweep, the bags' test-image indices and the model's name."""
+    """The sweep of the project: ``model``'s contexts of the bags' test images, from the feature cache.
+
+    Arguments:
+        params: the configuration (``task3``, the seed).
+        paths: where the test split and its feature cache are.
+        model: the registry model; open it with one onnxruntime thread (many small calls).
+        fresh_inputs: the posterior inputs of other images of each source's weather (b1, b2, … in order), the fresh
+            pools instead of the test split's (scheduled monitoring: new images); ``None``: the test split's.
+
+    Returns:
+        The :class:`~components.domains.sweep.NoiseSweep`, the bags' test-image indices (:class:`BagSplit`) and the
+            model's name.
+    """
     t = params.task3
     test = dataset.open_split(paths.data, "test")
     split = bag_members(params, test.theta)
@@ -216,12 +256,23 @@ DETECTED = 0.5
 
 
 def detection_floor(flagged_rates: Mapping[float, float]) -> float | None:
-    """The smallest η > 0 from which the ODD decision flags ≥ :data:`DETECTED` of the targets at that η and every
-    larger one (``flagged_rates``: η → share of targets flagged), or ``None`` when not even the largest η qualifies.
+    """The power of the ODD decision in one number: the smallest out-of-ODD share η it detects.
 
-    The power of the decision in one number: with α the false-alarm rate at η = 0, targets with an out-of-ODD share
-    of at least this η are flagged more often than not. ``None`` is the warning a user needs: the decision keeps its
-    false-alarm promise but detects nothing.
+    With α the false-alarm rate at η = 0, targets with an out-of-ODD share of at least this η are flagged more often
+    than not. ``None`` is the warning a user needs: the decision keeps its false-alarm promise but detects nothing.
+
+    Arguments:
+        flagged_rates: η → the share of the targets at η that the decision flags.
+
+    Returns:
+        The smallest η > 0 from which the decision flags ≥ :data:`DETECTED` of the targets at that η and at every
+            larger one, or ``None`` when not even the largest η qualifies.
+
+    Examples:
+        >>> detection_floor({0.0: 0.05, 0.2: 0.3, 0.4: 0.6, 0.6: 0.9, 0.8: 1.0})
+        0.4
+        >>> detection_floor({0.0: 0.05, 1.0: 0.4}) is None
+        True
     """
     floor = None
     for eta in sorted((e for e in flagged_rates if e > 0), reverse=True):
@@ -242,11 +293,29 @@ def task3_metrics(
     check: FalseAlarmCheck,
     seconds: float,
 ) -> dict:
-    """``reports/task3/metrics.json``: the setting (n_W = ``n_points``, the true λ = ``weights``, bag and pool
-    sizes), the ODD decision (the target kind it was calibrated on, α, rank, threshold; its false-alarm rate on the
-    sweep's η = 0 targets and on ``check``'s targets of new seeds, each with its Clopper–Pearson interval; its power,
-    :func:`detection_floor` on the same kind) and, per η, every figure of :data:`PER_ETA` for each target kind in
-    ``experiments`` (``kind → experiments``) as ``<figure>_<kind>``."""
+    """``reports/task3/metrics.json``: the setting, the ODD decision and, per η, every figure of :data:`PER_ETA`.
+
+    Arguments:
+        model_name: the registry model's id.
+        n_points: n_W, the draws of each target where the densities were compared.
+        weights: the true λ of the sources in the targets.
+        split: the bags and fresh pools (their sizes are reported).
+        experiments: target kind (``paper``, ``fresh``) → the sweep's experiments of that kind.
+        detector: the ODD decision, calibrated on the relative gap.
+        calibrated_on: the target kind the decision was calibrated on.
+        check: the decision's false alarms on in-ODD targets of new seeds.
+        seconds: the sweep's wall time.
+
+    Returns:
+        A JSON-ready dict: the setting (n_W, the true λ, bag and pool sizes), the ODD decision (the target kind it
+            was calibrated on, α, rank, threshold; its false-alarm rate on the sweep's η = 0 targets and on
+            ``check``'s targets of new seeds, each with its Clopper–Pearson interval; its power,
+            :func:`detection_floor` on the same kind) and, per η, every figure for each target kind as
+            ``<figure>_<kind>``.
+
+    Raises:
+        ValueError: when the sweep did not run the kind the decision was calibrated on.
+    """
     if calibrated_on not in experiments:
         raise ValueError(f"the detector was calibrated on {calibrated_on} targets, which the sweep did not run")
     summaries = {kind: summarize_sweep(es, detector) for kind, es in experiments.items()}

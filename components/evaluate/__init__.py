@@ -8,10 +8,12 @@
   information gain (reflected KDE), for all, day and night truths.
 - :mod:`~components.evaluate.report`: one flat metrics row per model and the results table (markdown).
 - :mod:`~components.evaluate.champion`: the rule that names the champion and the runner-up.
+- :mod:`~components.evaluate.evaluation`: one exported model's evaluation (draws, metrics, PPC, plots).
+- :mod:`~components.evaluate.publish`: the cross-model reports, ``table.md`` and ``champion.json``.
 - :mod:`~components.evaluate.summary`: per-parameter medians and highest-density intervals of draws (the CLI).
 
 Used by the ``evaluate`` stage; ``diagnostics`` also by the ``train``, ``task2`` and ``task3`` stages and
 the ``pidc`` CLI (through the plots and the sweep), ``summary`` by the CLI only.
 """
 
-__all__ = ["diagnostics", "ppc", "task1", "marginals", "report", "champion", "summary"]
+__all__ = ["diagnostics", "ppc", "task1", "marginals", "report", "champion", "evaluation", "publish", "summary"]

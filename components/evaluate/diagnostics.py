@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from components.core.checks import whole_number
+
 __all__ = [
     "hpd_credibility",
     "superiority",
@@ -161,14 +163,11 @@ def calibration_band(
     Returns:
         the band, in [0, 1]: 95 % of perfectly calibrated models have a calibration error ≤ it (for q = 0.95).
     """
-    if isinstance(images, bool) or int(images) != images or images < 1:
-        raise ValueError(f"images must be an integer >= 1, got {images!r}")
-    if isinstance(samples, bool) or int(samples) != samples or samples < 1:
-        raise ValueError(f"samples must be an integer >= 1, got {samples!r}")
+    images = whole_number("images", images, low=1, floats=True)
+    samples = whole_number("samples", samples, low=1, floats=True)
     if not 0.0 < float(quantile) < 1.0:
         raise ValueError(f"quantile must be in (0, 1), got {quantile!r}")
-    if isinstance(replicates, bool) or int(replicates) != replicates or replicates < 100:
-        raise ValueError(f"replicates must be an integer >= 100, got {replicates!r}")
+    replicates = whole_number("replicates", replicates, low=100, floats=True)
     lv = None if levels is None else _levels(levels)
     errors = np.empty(int(replicates))
     for r in range(int(replicates)):
@@ -246,7 +245,7 @@ def auc_interval(auc: float, negatives: int, positives: int, confidence: float =
     ``positives`` cases: Newcombe's hybrid score interval (Newcombe 2006, *Statistics in Medicine* 25:559, method 5).
 
     The limits are the two solutions θ of (θ̂ − θ)² = z² V(θ), with Hanley and McNeil's variance written as a function
-    of θ and both sample sizes replaced by N* = (m + n)/2 − 1::
+    of θ and both sample sizes replaced by N* = (m + n)/2 − 1:
 
         V(θ) = θ(1 − θ) / (m n) · [1 + (N* − 1) ((1 − θ)/(2 − θ) + θ/(1 + θ))]
 
@@ -262,8 +261,7 @@ def auc_interval(auc: float, negatives: int, positives: int, confidence: float =
     if not 0.0 <= float(auc) <= 1.0:
         raise ValueError(f"auc must lie in [0, 1], got {auc!r}")
     for name, count in (("negatives", negatives), ("positives", positives)):
-        if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1:
-            raise ValueError(f"{name} must be a positive number of cases, got {count!r}")
+        whole_number(name, count, low=1, hint=" (a number of cases)")
     if not 0.0 < float(confidence) < 1.0:
         raise ValueError(f"confidence must lie in (0, 1), got {confidence!r}")
     a, m, n = float(auc), int(negatives), int(positives)

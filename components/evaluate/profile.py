@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from components.core.checks import whole_number
 from components.core.weather import Box
 from components.evaluate.marginals import MarginalScores, parameter_figures, subset_masks
 
@@ -51,8 +52,7 @@ FIGURES: tuple[str, ...] = (
 
 def truth_bins(box: Box, bins: int) -> np.ndarray:
     """The edges ``(d, bins + 1)`` of ``bins`` equal-width bins of each parameter's prior range (physical units)."""
-    if isinstance(bins, bool) or not isinstance(bins, (int, np.integer)) or bins < 1:
-        raise ValueError(f"the profile needs a positive whole number of bins, got {bins!r}")
+    whole_number("the profile's number of bins", bins, low=1)
     return np.stack([np.linspace(lo, hi, int(bins) + 1) for lo, hi in zip(box.low, box.high, strict=True)])
 
 

@@ -1,4 +1,4 @@
-"""Task I reports: one flat row of headline metrics per model, and the results table of the README (markdown).
+"""Task I reports: one flat row of headline metrics per model, and the results table (markdown; shown on docs/results.md).
 
 * :func:`model_row`: what ``reports/task1/models/<model>.json`` holds — :data:`HEADLINE` (the whole-posterior
   metrics of :func:`components.evaluate.task1.task1_metrics` and the stage's counts) and the per-parameter median

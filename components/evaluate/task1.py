@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from components.core import seeding, weather
+from components.core.checks import whole_number
 from components.core.config import Params
 from components.evaluate import diagnostics
 from components.evaluate.ppc import PPCResult, posterior_predictive_check
@@ -45,8 +46,7 @@ def images_evaluated(images: int | str, available: int) -> int:
     ``available`` ones of the test split."""
     if images == "all":
         return int(available)
-    if isinstance(images, bool) or not isinstance(images, (int, np.integer)) or images < 1:
-        raise ValueError(f"evaluate.images must be a positive integer or 'all', got {images!r}")
+    whole_number("evaluate.images", images, low=1, hint=" or 'all'")
     if images > available:
         raise ValueError(f"evaluate.images is {images} but the test split has only {available} images")
     return int(images)

@@ -100,10 +100,9 @@ class RegisteredPosterior:
         name its images (:attr:`training_renders`).
 
         A model of the renderer's own images learned their size alone: images of another size are area-resized to the
-        backbone's input, and the pipeline's calibration does not cover them (BENCHMARKS.md, "Images of another
-        resolution"). A model of resized renders learned frames low..high pixels high at the renders' aspect, shrunk
+        backbone's input, and the pipeline's calibration does not cover them (docs/studies/other-resolutions.md). A model of resized renders learned frames low..high pixels high at the renders' aspect, shrunk
         to ``height × width``, so that size too (images taken as already shrunk; the renderer's own unresized images of
-        that size are not what it learned: BENCHMARKS.md, "Camera-like renders in the pipeline")."""
+        that size are not what it learned: docs/studies/camera-renders.md)."""
         renders = self.training_renders
         if renders is None:
             return None

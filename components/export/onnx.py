@@ -180,8 +180,8 @@ class _OneHotRQS(MonotonicRQSTransform):
     For bin indices k ``(*)`` each knot table ``(*, K + 1)`` is read as ``Σⱼ tableⱼ · [j = k]``: every term but one is an
     exact zero, so the sum is ``table[k]`` to the bit (the knots and derivatives are finite: zuko bounds them). In the
     exported graph this is Equal, Mul and ReduceSum, which onnxruntime runs faster than GatherElements on tables
-    expanded to every draw: ~1.2× a draw of the sample graph, ~1.06× a point of the density graph (BENCHMARKS.md "The
-    splines' bins by one-hot sums"; the compiled training step is faster with zuko's gathers and keeps them). ``bin``
+    expanded to every draw: ~1.2× a draw of the sample graph, ~1.06× a point of the density graph (docs/studies/
+    spline-one-hot.md; the compiled training step is faster with zuko's gathers and keeps them). ``bin``
     is zuko's method (zuko 1.x); ``tests/test_export_runtime.py`` checks the two against each other.
     """
 
@@ -453,6 +453,13 @@ def _write_graphs(model: NPE, tmp: Path, exporter: str) -> dict[str, str]:
             )
             reference = draw_flow(flow(c.unsqueeze(1).expand(b, eps.shape[1], c.shape[1])), eps)  # zuko's inverse
             checks.append((name, {"context": c.numpy(), "eps": eps.numpy()}, list(reference)))
+    _check_graphs(tmp, checks)
+    return files
+
+
+def _check_graphs(tmp: Path, checks: list[tuple[str, dict[str, np.ndarray], list[Tensor]]]) -> None:
+    """Run each graph file of ``tmp`` on its feeds with onnxruntime (one thread, CPU) and compare its outputs with
+    torch's; a ``RuntimeError`` naming the graph when onnxruntime cannot run it or it disagrees by more than 1e-3."""
     options = onnxruntime.SessionOptions()
     options.intra_op_num_threads = 1
     for name, feeds, expected in checks:
@@ -465,7 +472,6 @@ def _write_graphs(model: NPE, tmp: Path, exporter: str) -> dict[str, str]:
             err = float(np.max(np.abs(g - e.numpy()))) if g.size else 0.0
             if not math.isfinite(err) or err > 1e-3:
                 raise RuntimeError(f"exported {name} disagrees with torch by {err:.3g} (onnxruntime vs torch)")
-    return files
 
 
 def _card(model: NPE, user_card: dict[str, Any], files: dict[str, str], tmp: Path, exporter: str) -> dict[str, Any]:

@@ -30,6 +30,7 @@ import numpy as np
 import onnxruntime
 
 from components.core import seeding, weather
+from components.core.checks import whole_number
 from components.core.files import sha256_file
 
 __all__ = ["OnnxPosterior", "CARD_FORMAT", "CARD_KIND"]
@@ -99,6 +100,28 @@ class OnnxPosterior:
         ensemble: K, the number of flows of the equal-weight mixture.
         input_shape: one input's shape (features ``(F,)``, or the preprocessed image tensor's ``(C, H, W)``).
         features: the context size.
+
+    Examples:
+        An (untrained) torch posterior exported, then read back without torch: the same density to float32
+        precision.
+
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> import numpy as np, torch
+        >>> from components.core.weather import Box
+        >>> from components.export.onnx import export_posterior
+        >>> from components.posterior import NPE, FlowConfig
+        >>> box = Box(np.array([0.0, -90.0]), np.array([100.0, 90.0]), names=("cloudiness", "sun_altitude_angle"))
+        >>> model = NPE(None, features=3, box=box, config=FlowConfig(transforms=1, hidden_features=(16,)))
+        >>> folder = export_posterior(model, Path(tempfile.mkdtemp()) / "toy", card={}, exporter="torchscript")
+        >>> posterior = OnnxPosterior.load(folder)
+        >>> x = np.random.default_rng(0).standard_normal((4, 3)).astype(np.float32)  # 4 inputs of 3 features
+        >>> theta = posterior.sample(x, 10, seed=1)  # 10 draws per input, physical units
+        >>> theta.shape, theta.dtype
+        ((4, 10, 2), dtype('float64'))
+        >>> torch_log_q = model.log_prob(torch.from_numpy(theta).float(), torch.from_numpy(x)).detach().numpy()
+        >>> bool(np.allclose(posterior.log_prob(theta, x), torch_log_q, atol=1e-3))
+        True
     """
 
     def __init__(self, folder: Path, card: dict[str, Any], sessions: dict[str, onnxruntime.InferenceSession]) -> None:
@@ -138,16 +161,10 @@ class OnnxPosterior:
         folder = Path(folder)
         if not folder.is_dir():
             raise FileNotFoundError(f"{folder}: no such exported posterior folder (run the export stage)")
-        if (
-            isinstance(intra_op_num_threads, bool)
-            or not isinstance(intra_op_num_threads, int)
-            or intra_op_num_threads < 1
-        ):
-            raise ValueError(f"intra_op_num_threads must be an integer >= 1, got {intra_op_num_threads!r}")
+        intra_op_num_threads = whole_number("intra_op_num_threads", intra_op_num_threads, low=1)
         card = _read_card(folder)
         ensemble = card["ensemble"]
-        if isinstance(ensemble, bool) or not isinstance(ensemble, int) or ensemble < 1:
-            raise ValueError(f"{folder / 'card.json'}: ensemble must be an integer >= 1, got {ensemble!r}")
+        whole_number(f"{folder / 'card.json'}: ensemble", ensemble, low=1)
         roles = ["context", *(f"{g}_{k}" for g in ("log_prob", "sample") for k in range(ensemble))]
         options = onnxruntime.SessionOptions()
         options.intra_op_num_threads = intra_op_num_threads
@@ -215,9 +232,7 @@ class OnnxPosterior:
         return np.ascontiguousarray(x, dtype=np.float32)
 
     def _check_n(self, n: int) -> int:
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-            raise ValueError(f"number of posterior samples n must be an integer >= 1, got {n!r}")
-        return int(n)
+        return whole_number("the number of posterior samples n", n, low=1)
 
     # --- graphs ------------------------------------------------------------------------------------------
 
@@ -365,9 +380,15 @@ class OnnxPosterior:
         return theta.reshape(b, n, d), log_q.reshape(b, n)
 
     def sample_and_log_prob(self, x: np.ndarray, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-        """n draws θ ~ q(θ | xᵢ) per input and their log q(θ | xᵢ): ``(B, n, d)`` and ``(B, n)``, float64.
+        """n draws θ ~ q(θ | xᵢ) per input and their log q(θ | xᵢ). Deterministic in ``seed`` (same seed, same draws).
 
-        Deterministic in ``seed`` (same seed, same draws). θ never leaves the closed box.
+        Arguments:
+            x: ``(B, *input_shape)`` inputs.
+            n: draws per input, ≥ 1.
+            seed: root of the stream ``(seed, "posterior", "sample")`` of the base noise and the members.
+
+        Returns:
+            θ ``(B, n, d)`` float64 in physical units, inside the closed box, and log q(θ | x) ``(B, n)`` float64.
         """
         n = self._check_n(n)
         x32 = self._inputs(x)
@@ -375,7 +396,16 @@ class OnnxPosterior:
         return self._draw(self._context_of(x32), eps, which)
 
     def sample(self, x: np.ndarray, n: int, seed: int) -> np.ndarray:
-        """n draws θ ~ q(θ | xᵢ) per input: ``x (B, *input_shape) → (B, n, d)``, physical units, deterministic in seed."""
+        """n draws θ ~ q(θ | xᵢ) per input, deterministic in ``seed`` (the θ of :meth:`sample_and_log_prob`).
+
+        Arguments:
+            x: ``(B, *input_shape)`` inputs.
+            n: draws per input, ≥ 1.
+            seed: root of the draws' stream.
+
+        Returns:
+            θ ``(B, n, d)`` float64 in physical units, inside the closed box.
+        """
         return self.sample_and_log_prob(x, n, seed)[0]
 
     def __repr__(self) -> str:

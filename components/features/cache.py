@@ -1,6 +1,6 @@
 """Cached backbone outputs, aligned with the dataset's shards and validated against its manifest.
 
-Layout under the features root (``features/`` by default)::
+Layout under the features root (``features/`` by default):
 
     features/<backbone>/manifest.json             # backbone fingerprint, dim, dataset content hash
     features/<backbone>/<split>/shard-00000.npy   # float32 (k, dim) features of dataset shard 0

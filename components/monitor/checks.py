@@ -34,6 +34,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from components.core.checks import whole_number
 from components.domains.relative import OddDetector, false_alarm_interval
 from components.domains.sweep import FalseAlarmCheck
 
@@ -57,8 +58,7 @@ class MonitoringAlarm(RuntimeError):
 def model_level(level: float, models: int) -> float:
     """The level of each of ``models`` calibration checks of one run such that healthy models raise any of them with
     probability ≤ 1 − ``level``: 1 − (1 − level)/models (Bonferroni)."""
-    if isinstance(models, bool) or int(models) != models or models < 1:
-        raise ValueError(f"models must be an integer >= 1, got {models!r}")
+    whole_number("models", models, low=1, floats=True)
     if not 0.0 < float(level) < 1.0:
         raise ValueError(f"level must be in (0, 1), got {level!r}")
     return 1.0 - (1.0 - float(level)) / int(models)
@@ -82,7 +82,7 @@ def calibration_alarm(model: str, metrics: Mapping[str, float]) -> str | None:
     resized = int(metrics.get("resized_images") or 0)
     why = (
         f"; {resized} of the images were resized from another size than its training renders, which its calibration "
-        'does not cover (BENCHMARKS.md, "Images of another resolution")'
+        "does not cover (docs/studies/other-resolutions.md)"
         if resized
         else ""
     )
@@ -103,7 +103,8 @@ class CalibratedOdd:
         model: the model it was calibrated for (its relative gaps).
         detector: threshold, α and the number m of calibration targets.
         calibrated_on: the target kind, ``fresh`` (in-ODD part from other images of the sources' weather) or ``paper``.
-        bag_sizes: source bag → its images; pool_sizes: source bag → the images of its fresh pool.
+        bag_sizes: source bag → its images.
+        pool_sizes: source bag → the images of its fresh pool.
     """
 
     model: str
@@ -147,7 +148,10 @@ class FalseAlarmTest:
 
     Attributes:
         check: the count, rate and Clopper–Pearson interval of the rate (:class:`~components.domains.sweep.FalseAlarmCheck`).
-        level: the interval's probability; low, high: the interval of the count; distribution: its distribution.
+        level: the interval's probability.
+        low: the lower end of the interval of the count.
+        high: its upper end.
+        distribution: the count's distribution.
         binomial: the binomial interval of α on as many targets (for reference: it ignores the threshold's spread).
     """
 

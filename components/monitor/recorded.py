@@ -1,13 +1,13 @@
 """A folder of recorded images with their weather labels: what scheduled monitoring judges the models on instead of
 new simulated images (``monitor.source: <folder>``).
 
-The format::
+The format:
 
     <folder>/labels.csv      one row per image, a header row first:
                              image,cloudiness,fog_density,precipitation,sun_altitude_angle,wind_intensity,precipitation_deposits
                              drive1/frame_0001.png,20,5,0,35.5,10,0
     <folder>/<image>         the image files the ``image`` column names, relative to the folder (PNG, JPEG, … of any
-                             size: :func:`components.core.images.read_image`)
+                             size: what components.core.images.read_image reads)
 
 The six parameters are the true weather of each image in physical units (% and degrees, :mod:`components.core.weather`),
 inside the prior box the models were trained on (a label outside it cannot be judged: the posterior has no mass there).

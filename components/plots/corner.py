@@ -96,16 +96,18 @@ def corner_plot(
     """A 6×6 corner plot of θ samples (``(n, 6)``, physical units) with 2-D HDR contours at ``levels``.
 
     Arguments:
-        samples: ``(n, 6)`` θ_j drawn from the distribution to show. log_prob: ``(n,)`` their log-densities
-            (needed only for ``zoom=True``; without it the zoom uses central intervals).
+        samples: ``(n, 6)`` θ_j drawn from the distribution to show.
+        log_prob: ``(n,)`` their log-densities (needed only for ``zoom=True``; without it the zoom uses central
+            intervals).
         truth: ``(6,)`` ground-truth θ*, pinned by lines and a star in every panel.
         levels: credible levels of the contours (paper: 68.27, 95.45, 99.73 %).
         zoom: axes over the physical box (False) or over the 99.73 % region, padded (True); see
             :func:`corner_ranges`.
         reference_samples: ``(m, 6)`` optional second distribution overlaid as contours and step histograms in
-            another colour (Task II: the true weather distribution of a domain). labels: legend names of the
-            samples and of the reference.
-        bins, smooth: grid cells per axis and Gaussian smoothing (in cells) of the 2-D histograms.
+            another colour (Task II: the true weather distribution of a domain).
+        labels: legend names of the samples and of the reference.
+        bins: grid cells per axis of the 2-D histograms.
+        smooth: Gaussian smoothing of the 2-D histograms, in cells.
     """
     theta = as_samples(samples)
     if log_prob is not None:

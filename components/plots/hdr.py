@@ -17,6 +17,7 @@ import math
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
+from components.core.checks import whole_number
 from components.plots.checks import as_levels
 
 __all__ = ["hdr_log_threshold", "in_hdr", "grid_density", "grid_hdr_thresholds"]
@@ -34,7 +35,7 @@ def hdr_log_threshold(log_prob_samples: object, level: float) -> float:
 
     Raises:
         ValueError: a level outside (0, 1); not a 1-D array of finite values; fewer than ⌈1/(1 − α)⌉ samples
-        (with fewer, not even one sample is expected outside the HDR and the quantile is meaningless).
+            (with fewer, not even one sample is expected outside the HDR and the quantile is meaningless).
     """
     (alpha,) = as_levels(level, name="level")
     lp = np.asarray(log_prob_samples, dtype=np.float64)
@@ -65,8 +66,10 @@ def grid_density(
     """A 2-D marginal on a grid: the probability mass of each cell, from samples.
 
     Arguments:
-        x, y: ``(n,)`` coordinates of the samples (physical units).
-        x_range, y_range: the grid's extent; samples outside it count in the total but in no cell.
+        x: ``(n,)`` first coordinates of the samples (physical units).
+        y: ``(n,)`` second coordinates of the samples (physical units).
+        x_range: the grid's extent along x; samples outside it count in the total but in no cell.
+        y_range: the grid's extent along y.
         bins: cells per axis.
         smooth: standard deviation, in cells, of the Gaussian smoothing of the histogram (0: none). The
             smoothing keeps the mass that falls inside the grid.
@@ -79,8 +82,7 @@ def grid_density(
     y = np.asarray(y, dtype=np.float64)
     if x.ndim != 1 or x.shape != y.shape or x.size == 0:
         raise ValueError(f"x and y must be non-empty 1-D arrays of one shape, got {x.shape} and {y.shape}")
-    if not (isinstance(bins, (int, np.integer)) and bins >= 2):
-        raise ValueError(f"bins must be an integer >= 2, got {bins!r}")
+    whole_number("bins", bins, low=2)
     if not smooth >= 0:
         raise ValueError(f"smooth must be >= 0 cells, got {smooth!r}")
     for name, (lo, hi) in (("x_range", x_range), ("y_range", y_range)):

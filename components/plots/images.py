@@ -12,6 +12,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from matplotlib.figure import Figure
 
+from components.core.checks import whole_number
 from components.plots.canvas import new_figure
 from components.plots.checks import as_image, as_images
 
@@ -99,8 +100,7 @@ def ppc_sheet(
 def image_grid(images: object, ncols: int, titles: Sequence[str] | None = None, title: str | None = None) -> Figure:
     """A bag of ``n`` RGB images (``(n, H, W, 3)`` uint8) on a grid of ``ncols`` columns, optional captions."""
     imgs = as_images(images, "images")
-    if not (isinstance(ncols, (int, np.integer)) and ncols >= 1):
-        raise ValueError(f"ncols must be a positive integer, got {ncols!r}")
+    whole_number("ncols", ncols, low=1)
     n = imgs.shape[0]
     if titles is not None and len(titles) != n:
         raise ValueError(f"titles must have one entry per image ({n}), got {len(titles)}")

@@ -10,6 +10,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
+from components.core.checks import whole_number
 from components.core.weather import PREDICTED, Box
 from components.plots.canvas import new_figure
 from components.plots.checks import N_THETA, as_box, as_log_prob, as_samples, as_truth
@@ -29,8 +30,11 @@ def marginal_hdr_histograms(
     """The numbers behind :func:`marginal_histograms`.
 
     Arguments:
-        samples: ``(n, 6)`` θ_j ~ P̂(W | I = i), physical units. log_prob: ``(n,)`` log p̂(θ_j | i).
-        level: credible level α of the highlighted HDR. box: the histogram ranges (default: physical ranges).
+        samples: ``(n, 6)`` θ_j ~ P̂(W | I = i), physical units.
+        log_prob: ``(n,)`` log p̂(θ_j | i).
+        level: credible level α of the highlighted HDR.
+        box: the histogram ranges (default: physical ranges).
+        bins: histogram bins per parameter.
 
     Returns:
         ``(edges, inside, outside)``: ``edges[k]`` is the ``(bins+1,)`` bin edges of θ_k; ``inside`` and
@@ -40,8 +44,7 @@ def marginal_hdr_histograms(
     theta = as_samples(samples)
     lp = as_log_prob(log_prob, theta.shape[0])
     b = as_box(box)
-    if not (isinstance(bins, (int, np.integer)) and bins >= 2):
-        raise ValueError(f"bins must be an integer >= 2, got {bins!r}")
+    whole_number("bins", bins, low=2)
     mask = in_hdr(lp, level)
     n = theta.shape[0]
     edges, inside, outside = [], np.zeros((N_THETA, bins)), np.zeros((N_THETA, bins))

@@ -19,6 +19,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
+from components.core.checks import whole_number
 from components.core.weather import PREDICTED, Box
 from components.plots.canvas import new_figure
 from components.plots.checks import N_THETA, as_box, as_samples
@@ -35,8 +36,12 @@ class Marginals:
     """One sample's six marginals in an overlay.
 
     Attributes:
-        samples: ``(n, 6)`` draws, physical units; weights: ``(n,)`` non-negative per draw, or None (equal).
-        label: its legend entry; colour, style, width: its line.
+        samples: ``(n, 6)`` draws, physical units.
+        weights: ``(n,)`` non-negative per draw, or None (equal).
+        label: its legend entry.
+        colour: its line's colour.
+        style: its line's style.
+        width: its line's width.
         point_mass: a parameter whose draws are all equal is drawn as a vertical line at that value (e.g. a truth that
             holds the parameter fixed) instead of a histogram.
     """
@@ -72,8 +77,7 @@ def overlay_marginals(
     b = as_box(box)
     if notes is not None and len(notes) != N_THETA:
         raise ValueError(f"notes must hold one string per parameter ({N_THETA}), got {len(notes)}")
-    if not (isinstance(bins, (int, np.integer)) and bins >= 2):
-        raise ValueError(f"bins must be an integer >= 2, got {bins!r}")
+    whole_number("bins", bins, low=2)
     fig = new_figure(12.0, 7.5)
     axes = fig.subplots(2, 3)
     for k, ax in enumerate(axes.ravel()):

@@ -60,7 +60,8 @@ def balance_penalty(
     Arguments:
         log_q_joint: log q(θᵢ | xᵢ), shape ``(..., B)``.
         log_q_marginal: log q(θ'ᵢ | xᵢ) for θ' independent of x, shape ``(..., B)``.
-        log_prior_joint, log_prior_marginal: log p(θᵢ), log p(θ'ᵢ) in the same units, broadcastable.
+        log_prior_joint: log p(θᵢ) in the same units, broadcastable.
+        log_prior_marginal: log p(θ'ᵢ) in the same units, broadcastable.
 
     Returns:
         shape ``(...)``: ``ā₁ · ā₂``, the means of ``aᵢ = d(θᵢ, xᵢ) + d(θ'ᵢ, xᵢ) − 1`` over the two halves of the

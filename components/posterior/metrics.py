@@ -14,7 +14,7 @@ __all__ = ["mean_nll"]
 def mean_nll(model: NPE, x: torch.Tensor, theta: np.ndarray, batch: int = 512) -> float:
     """−(1/N) Σᵢ log q(θᵢ | xᵢ) over a split of N pairs, in nats (physical units of θ).
 
-    Args:
+    Arguments:
         model: the posterior q(θ | x).
         x: ``(N, …)`` model inputs (cached features or a trainable backbone's preprocessed images).
         theta: ``(N, 6)`` true weather parameters, physical units.

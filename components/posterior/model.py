@@ -36,6 +36,7 @@ from torch import Tensor, nn
 from torch.distributions import AffineTransform, Distribution
 
 from components.core import seeding, weather
+from components.core.checks import whole_number
 from components.posterior.bijection import Z_MAX, ScaledLogit, as_interval_box
 from components.posterior.mixture import EqualMixture, draw_flow, standard_normal
 from components.posterior.regime import RegimeTemperature
@@ -48,8 +49,8 @@ Z_SCALE: float = Z_MAX / 4.0
 #: Rows per ``isfinite`` call and elements per float64 moment in :func:`finite_rows` and
 #: :meth:`NPE.fit_standardization`: the cnn's 50 000 training inputs of 3 × 64 × 64 are 2.5 GB in float32, and whole-array
 #: temporaries (a 0.6 GB bool copy, a 5 GB float64 copy and its squares) took ~36 s before its first epoch; in pieces the
-#: same numbers come in ~12 s (``benchmarks/bench_inputs.py``; BENCHMARKS.md "The cnn's inputs in pieces, one density
-#: graph per ensemble member").
+#: same numbers come in ~12 s (``benchmarks/studies/bench_inputs.py``;
+#: docs/studies/cnn-inputs-pieces.md).
 _ROWS_PER_CHECK: int = 4096
 _ELEMENTS_PER_MOMENT: int = 256
 
@@ -100,23 +101,17 @@ class FlowConfig:
     def __post_init__(self) -> None:
         for name in ("hidden_features", "context_layers"):
             widths = getattr(self, name)
-            if not isinstance(widths, (tuple, list)) or any(
-                isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in widths
-            ):
+            if not isinstance(widths, (tuple, list)):
                 raise ValueError(f"FlowConfig.{name} must be positive integer widths, got {widths!r}")
-            object.__setattr__(self, name, tuple(widths))
-        for name in ("transforms", "bins", "ensemble"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"FlowConfig.{name} must be an integer >= 1, got {v!r}")
-        if self.bins < 2:
-            raise ValueError(f"FlowConfig.bins must be >= 2, got {self.bins}")
+            checked = tuple(whole_number(f"FlowConfig.{name}[{i}]", w, low=1) for i, w in enumerate(widths))
+            object.__setattr__(self, name, checked)
+        for name, low in (("transforms", 1), ("bins", 2), ("ensemble", 1)):
+            object.__setattr__(self, name, whole_number(f"FlowConfig.{name}", getattr(self, name), low=low))
         if not self.hidden_features:
             raise ValueError(f"FlowConfig.hidden_features must hold at least one width, got {self.hidden_features}")
-        if self.passes is not None and (
-            isinstance(self.passes, bool) or not isinstance(self.passes, int) or self.passes < 1
-        ):
-            raise ValueError(f"FlowConfig.passes must be None (autoregressive) or an integer >= 1, got {self.passes!r}")
+        if self.passes is not None:
+            passes = whole_number("FlowConfig.passes", self.passes, low=1, hint=" or None (autoregressive)")
+            object.__setattr__(self, "passes", passes)
 
 
 def _build_flow(dim: int, context: int, config: FlowConfig, seed: int) -> zuko.flows.Flow:
@@ -162,9 +157,8 @@ def context_network(features: int, widths: tuple[int, ...], seed: int) -> nn.Mod
 def _generator(rng: torch.Generator | int) -> torch.Generator:
     if isinstance(rng, torch.Generator):
         return rng
-    if isinstance(rng, bool) or not isinstance(rng, int):
-        raise TypeError(f"rng must be a torch.Generator or an integer seed, got {type(rng).__name__}")
-    return torch.Generator().manual_seed(rng)
+    seed = whole_number("rng", rng, error=TypeError, hint=" seed or a torch.Generator")
+    return torch.Generator().manual_seed(seed)
 
 
 class NPE(nn.Module):
@@ -183,8 +177,32 @@ class NPE(nn.Module):
             the caller.
 
     Attributes:
-        feature_mean, feature_std: standardization buffers of shape ``input_shape`` (zeros/ones until
-            :meth:`fit_standardization`).
+        feature_mean: standardization buffer of shape ``input_shape`` (zeros until :meth:`fit_standardization`).
+        feature_std: standardization buffer of shape ``input_shape`` (ones until :meth:`fit_standardization`).
+
+    References:
+        Lueckmann et al., "Flexible statistical inference for mechanistic models of neural dynamics", NeurIPS 2017,
+        and Greenberg, Nonnenmacher & Macke, "Automatic Posterior Transformation for Likelihood-Free Inference",
+        ICML 2019 (neural posterior estimation); Durkan, Bekasov, Murray & Papamakarios,
+        "Neural Spline Flows", NeurIPS 2019 (the flow); Rozet et al., zuko (its implementation); Halin, Piérard et
+        al., "Physically Interpretable Probabilistic Domain Characterization" (its use for the weather).
+
+    Examples:
+        A posterior over a 2-D box (cloudiness in %, sun altitude in degrees) from 3 frozen features, untrained:
+
+        >>> import numpy as np, torch
+        >>> from components.core.weather import Box
+        >>> from components.posterior import NPE, FlowConfig
+        >>> box = Box(np.array([0.0, -90.0]), np.array([100.0, 90.0]), names=("cloudiness", "sun_altitude_angle"))
+        >>> model = NPE(None, features=3, box=box, config=FlowConfig(transforms=1, hidden_features=(16,)), seed=0)
+        >>> x = torch.randn(5, 3)  # a batch of 5 inputs
+        >>> theta = model.sample(x, 100, rng=1)  # 100 draws per input, physical units
+        >>> theta.shape, bool(box.contains(theta.double().numpy()).all())
+        (torch.Size([5, 100, 2]), True)
+        >>> model.log_prob(theta, x).shape  # log q(θ | x) in log(1 / (% · deg))
+        torch.Size([5, 100])
+        >>> model.log_prob(torch.tensor([[150.0, 0.0]]), x[:1])  # outside the box: zero density
+        tensor([-inf], grad_fn=<SubBackward0>)
     """
 
     feature_mean: Tensor
@@ -201,8 +219,7 @@ class NPE(nn.Module):
         seed: int = 0,
     ) -> None:
         super().__init__()
-        if isinstance(features, bool) or not isinstance(features, int) or features < 1:
-            raise ValueError(f"features (the context size) must be an integer >= 1, got {features!r}")
+        whole_number("features (the context size)", features, low=1)
         if not isinstance(config, FlowConfig):
             raise TypeError(f"config must be a FlowConfig, got {type(config).__name__}")
         if embedding is not None and not isinstance(embedding, nn.Module):
@@ -442,14 +459,19 @@ class NPE(nn.Module):
         return z, torch.logsumexp(parts, dim=0) - math.log(len(self.flows))
 
     def _check_n(self, n: int) -> None:
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"number of posterior samples n must be an integer >= 1, got {n!r}")
+        whole_number("the number of posterior samples n", n, low=1)
 
     def sample(self, x: Tensor, n: int, *, rng: torch.Generator | int = 0) -> Tensor:
-        """n draws θ ~ q(θ | x) per input: ``(B, *input_shape) → (B, n, d)``, physical units, inside the closed box.
+        """n draws θ ~ q(θ | x) per input, inside the closed box. No global RNG state is used; runs without autograd.
 
-        ``rng`` is a ``torch.Generator`` (advanced by the call) or an integer seed (a fresh generator: the same
-        seed gives the same draws). No global RNG state is used. Runs without autograd.
+        Arguments:
+            x: ``(B, *input_shape)`` inputs.
+            n: draws per input, ≥ 1.
+            rng: a ``torch.Generator`` (advanced by the call) or an integer seed (a fresh generator: the same seed
+                gives the same draws).
+
+        Returns:
+            θ ``(B, n, d)`` in physical units, in the model's dtype.
         """
         with torch.no_grad():
             return self.sample_and_log_prob(x, n, rng=rng, with_log_prob=False)[0]
@@ -457,12 +479,21 @@ class NPE(nn.Module):
     def sample_and_log_prob(
         self, x: Tensor, n: int, *, rng: torch.Generator | int = 0, with_log_prob: bool = True
     ) -> tuple[Tensor, Tensor]:
-        """n draws θ ~ q(θ | x) per input and log q(θ | x): ``(B, n, d)`` and ``(B, n)`` (physical units).
+        """n draws θ ~ q(θ | x) per input and their log q(θ | x).
 
         The log-density is that of the drawn z (cheaper than :meth:`log_prob` on θ). In float64 both agree to ~1e-10,
         except for draws beyond the faces' clipping (probability < 1e-6). θ is returned in the model's dtype: in
         float32, θ within ~1e-5 of a face is rounded, and :meth:`log_prob` of the rounded θ can differ by up to
-        ~0.1 nat there. With ``with_log_prob=False`` the second item is empty.
+        ~0.1 nat there.
+
+        Arguments:
+            x: ``(B, *input_shape)`` inputs.
+            n: draws per input, ≥ 1.
+            rng: a ``torch.Generator`` (advanced by the call) or an integer seed.
+            with_log_prob: False skips the log-densities (the second item is then empty).
+
+        Returns:
+            θ ``(B, n, d)`` in physical units and log q(θ | x) ``(B, n)`` in nats per unit of θ.
         """
         self._check_n(n)
         generator = _generator(rng)

@@ -1,10 +1,9 @@
 """A base scale per regime: ε ↦ ε / τ(c), τ blended between two regimes by the probability of one given the context.
 
 Where the image cannot show a parameter, a flow trained on every input at once can be more confident than it should
-be in one regime and less in another: at night the sky's cues vanish (``simulator.md``, "Night erases sky cues"), and
+be in one regime and less in another: at night the sky's cues vanish (docs/simulators.md), and
 one post-hoc τ per parameter (:mod:`components.posterior.temperature`) leaves the champion's night marginals covering
-the truth 62–64 % of the time with their central 68 % intervals, and its daytime ones 69–74 % (BENCHMARKS.md,
-"A base scale for the night"). This transform gives each regime its own τ:
+the truth 62–64 % of the time with their central 68 % intervals, and its daytime ones 69–74 % (docs/studies/night-base-scale.md). This transform gives each regime its own τ:
 
     log τ(c) = (1 − p(c)) · log τ_out + p(c) · log τ_in,      p(c) = σ(w · c + b),
 

@@ -13,6 +13,7 @@ import math
 from dataclasses import fields
 from typing import TYPE_CHECKING, Any
 
+from components.core.checks import whole_number
 from components.posterior.model import FlowConfig
 from components.posterior.temperature import Regime
 from components.posterior.train import TrainingConfig
@@ -44,20 +45,14 @@ def _every_field(cls: type, settings: dict[str, Any]) -> dict[str, Any]:
     return settings
 
 
-def _check_positive(name: str, value: object) -> None:
-    """``ValueError`` naming ``name`` unless ``value`` is a positive integer (bool refused)."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-
-
 def small_data_scale(train_section: TrainConfig, size: int) -> float:
     """s = max(1, ``train.scale_to`` / size): how much smaller than ``scale_to`` the training set is.
 
     Below ``scale_to`` images a model trains s× more epochs with s× the patience (an epoch of few images is few
     optimizer steps) through a flow whose hidden widths shrink as 1/√s (fewer weights to fit): the rule measured on
-    three SBI problems with exact posteriors (``benchmarks/bench_sbi_problems.py``, BENCHMARKS.md). At and above
+    three SBI problems with exact posteriors (``benchmarks/bench_sbi_problems.py``, docs/studies/sbi-problems.md). At and above
     ``scale_to`` images the settings are ``train``'s as written."""
-    _check_positive("size", size)
+    whole_number("size", size, low=1)
     return max(1.0, train_section.scale_to / size)
 
 
@@ -76,8 +71,8 @@ def ensemble_for(train_section: TrainConfig, size: int) -> int:
     images, one below. Two flows trained on the same batches from independent initializations average away part
     of each one's idiosyncratic overconfidence and sharpen the posterior where the data suffice: on the 50k cues
     (one seed, the whole test split) 6.68 → 7.08 nats with calibration error 0.019 → 0.034 without input noise
-    (BENCHMARKS.md, "An ensemble of flows at 50k")."""
-    _check_positive("size", size)
+    (docs/studies/flow-ensemble.md)."""
+    whole_number("size", size, low=1)
     return train_section.flow.ensemble if size >= train_section.ensemble_min_size else 1
 
 
@@ -88,7 +83,7 @@ def flow_config(train_section: TrainConfig, *, size: int, trainable: bool, ensem
     The context network (``train.flow.context_layers``) sits between frozen features and the flows; a backbone
     trained jointly with the flow (``trainable``, the ``cnn``) is itself that learned map, and gets none: measured in
     the pipeline, the network behind the cnn cost it 0.2–0.3 nats at every size, while it added 0.2–0.6 to the cues
-    and tiny models (BENCHMARKS.md, "A context network before the flows")."""
+    and tiny models (docs/studies/context-network.md)."""
     f = train_section.flow
     return FlowConfig(
         **_every_field(
@@ -146,16 +141,16 @@ def input_noise_for(train_section: TrainConfig, size: int, *, trainable: bool, f
     than ``train.input_noise_min_features`` features and for a trainable backbone (it sees images, not features); the
     same for one flow and for an ensemble's.
     The noise a flow needs falls as 1/√n with its data: measured on the version-3 cues, σ = 0.3 at 5k and 0.15 at 20k
-    brought the tempered flows from 0.104 and 0.091 to 0.065 and 0.020 at no loss of information (BENCHMARKS.md, "Cues
-    version 3 and input noise", "Training the 50k models longer"). With the version-6 cues (the weather reader) the
+    brought the tempered flows from 0.104 and 0.091 to 0.065 and 0.020 at no loss of information (docs/studies/cues-3-input-noise.md,
+    docs/studies/longer-training.md). With the version-6 cues (the weather reader) the
     coverage gap crosses zero near σ = 0.50 at 5k, 0.23 at 20k and 0.16–0.20 at 50k (two flows): 1/√n again, with
     no room for the 1/√K that an ensemble of K flows had before (σ/√K was measured at K = 2 only, on the version-4
-    cues: BENCHMARKS.md, "Less noise, two flows, two seeds", "Cues version 6"). On a few informative features the same
+    cues: docs/studies/less-noise-two-flows.md, docs/studies/cues-6.md). On a few informative features the same
     noise erases the signal instead: on the SBI problems' 2–10 inputs it took the classifier two-sample accuracy at 1k
-    simulations from 0.73–0.75 to 0.86–0.96 (BENCHMARKS.md, "The SBI problems with today's defaults"), hence the
+    simulations from 0.73–0.75 to 0.86–0.96 (docs/studies/sbi-problems-defaults.md), hence the
     floor on the number of features."""
-    _check_positive("size", size)
-    _check_positive("features", features)
+    whole_number("size", size, low=1)
+    whole_number("features", features, low=1)
     if trainable or size > train_section.input_noise_max_size or features < train_section.input_noise_min_features:
         return 0.0
     return float(train_section.input_noise) * math.sqrt(train_section.scale_to / size)
@@ -166,7 +161,7 @@ def compile_for(train_section: TrainConfig, size: int, *, trainable: bool) -> bo
     takes at least ``train.compile_min_steps`` optimizer steps (:func:`epochs_for` × ⌈size / batch_size⌉). The
     compilation costs 35–50 s once per model shape (later processes reuse inductor's disk cache) and takes a
     256-sample step of the cues flow from 18.6 to 11.0 ms on one thread: it pays from a few thousand steps
-    (``benchmarks/bench_compile.py``, BENCHMARKS.md "Compiling the training step")."""
+    (``benchmarks/bench_compile.py``, docs/studies/compiled-training.md)."""
     t = train_section
     if t.compile_min_steps is None:
         return False

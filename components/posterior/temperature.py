@@ -11,12 +11,12 @@ are kept and only the spread changes. It is the flow's last transform, ``ε ↦ 
 else. τ (one per dimension, shared by an ensemble's members) maximizes the mean log q_τ(θᵢ | xᵢ) of the held-out
 pairs (the validation split): for one flow the optimum is τ_d² = mean εᵢ_d²; for an ensemble's mixture it is found
 by L-BFGS over log τ. This is temperature scaling (Guo et al. 2017) moved to the flow's base; measured in
-BENCHMARKS.md ("Calibration levers").
+docs/studies/temperature.md.
 
 A model with a regime temperature (:mod:`components.posterior.regime`) has two τ, blended per input by a gate on its
 context: :func:`fit_regime_gate` fits the gate on the training pairs (the regime is known from their θ), then
 :func:`calibrate` fits both τ by maximum likelihood on the held-out pairs, each pair weighted by its gate
-(BENCHMARKS.md, "A base scale for the night").
+(docs/studies/night-base-scale.md).
 
 Used by the ``train`` stage (the grid and its variants).
 """

@@ -36,6 +36,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from components.core import seeding
+from components.core.checks import whole_number
 from components.posterior.checkpoint import load_checkpoint, save_checkpoint
 from components.posterior.loss import npe_loss, npe_loss_terms
 from components.posterior.model import NPE, finite_rows
@@ -57,7 +58,8 @@ class TrainingConfig:
         schedule: ``"cosine"`` (annealed from ``lr`` to ``min_lr`` over ``epochs``), ``"plateau"`` (× ``plateau_factor``
             after ``plateau_patience`` epochs without improvement, floored at ``min_lr``) or ``"constant"``.
         min_lr: the schedule's floor.
-        plateau_factor, plateau_patience: the ``"plateau"`` schedule's settings.
+        plateau_factor: the ``"plateau"`` schedule's factor on the learning rate.
+        plateau_patience: the ``"plateau"`` schedule's epochs without improvement before it cuts the rate.
         patience: early stopping: stop after this many epochs without a validation loss below best − ``min_delta``;
             ``None``: every epoch runs. Either way the model ends with the weights of its best validation epoch.
         min_delta: the improvement that counts (nats).
@@ -99,15 +101,13 @@ class TrainingConfig:
     compile: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("epochs", "batch_size", "plateau_patience"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"TrainingConfig.{name} must be an integer >= 1, got {v!r}")
-        p = self.patience
-        if p is not None and (isinstance(p, bool) or not isinstance(p, int) or p < 1):
-            raise ValueError(f"TrainingConfig.patience must be an integer >= 1 or None (no early stopping), got {p!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"TrainingConfig.seed must be an integer >= 0, got {self.seed!r}")
+        for name, low in (("epochs", 1), ("batch_size", 1), ("plateau_patience", 1), ("seed", 0)):
+            object.__setattr__(self, name, whole_number(f"TrainingConfig.{name}", getattr(self, name), low=low))
+        if self.patience is not None:
+            hint = " or None (no early stopping)"
+            object.__setattr__(
+                self, "patience", whole_number("TrainingConfig.patience", self.patience, low=1, hint=hint)
+            )
         for name, low_ok in (
             ("lr", False),
             ("weight_decay", True),
@@ -142,9 +142,12 @@ class EpochRecord:
 
     Attributes:
         epoch: 0-based epoch index.
-        train_loss, val_loss: mean loss (nats, physical units; ``nll + balance·penalty``).
-        train_nll, val_nll: mean −log q(θ | x) (nats, physical units).
-        train_penalty, val_penalty: mean balancing penalty (0 for plain NPE).
+        train_loss: mean training loss (nats, physical units; ``nll + balance·penalty``).
+        val_loss: mean validation loss (the same).
+        train_nll: mean −log q(θ | x) on the training pairs (nats, physical units).
+        val_nll: the same on the validation pairs.
+        train_penalty: mean balancing penalty on the training pairs (0 for plain NPE).
+        val_penalty: the same on the validation pairs.
         lr: the learning rate used during the epoch.
         wall_time: seconds spent on the epoch (training + validation).
         best_epoch: the best epoch so far (lowest ``val_loss``).
@@ -360,10 +363,14 @@ def train(
 ) -> History:
     """Fit ``model`` to simulations by (balanced) NPE; the model ends with its best epoch's weights.
 
+    One function on purpose (over 80 lines): the epoch loop, its checkpoint and its resume share one state, in one
+    order of random draws; split, a resumed run could draw its batches in another order than an uninterrupted one.
+
     Arguments:
         model: the estimator; its standardization is fitted here on the training x (unless resuming).
-        train_set, val_set: ``(x (n, *input_shape), θ (n, d))`` arrays or tensors, θ in physical units inside
+        train_set: ``(x (n, *input_shape), θ (n, d))`` arrays or tensors, θ in physical units inside
             ``model.box`` (drawn from the uniform prior on it). Validated before any training.
+        val_set: the validation pairs, in the same form (early stopping and the best epoch are judged on them).
         config: the settings.
         checkpoint: a file path; after every epoch the full training state is written there atomically. If the
             file exists, training resumes from it (same config and data required; a finished run just restores

@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from components.core import seeding
+from components.core.checks import whole_number
 from components.core.weather import ALL_NAMES, complete_weather
 
 if TYPE_CHECKING:
@@ -110,11 +111,12 @@ class ScenePlan:
     Attributes:
         scene_seed: the scene seed it was drawn from.
         map_name: the chosen map (one of the candidate names).
-        ego_blueprint, ego_spawn_index, ego_colour: the ego vehicle, the index of its spawn point in
-            the map's spawn points (its transform fixes the heading) and a draw in [0, 1) that picks
-            the colour among the blueprint's recommended colours.
-        vehicle_blueprints, vehicle_spawn_indices, vehicle_colours: the NPC vehicles (same length);
-            spawn indices are distinct and never the ego's.
+        ego_blueprint: the ego vehicle's blueprint.
+        ego_spawn_index: the index of its spawn point in the map's spawn points (its transform fixes the heading).
+        ego_colour: a draw in [0, 1) that picks the colour among the blueprint's recommended colours.
+        vehicle_blueprints: the NPC vehicles' blueprints.
+        vehicle_spawn_indices: their spawn points (as many), distinct and never the ego's.
+        vehicle_colours: their colour draws in [0, 1) (as many).
         walker_blueprints: one blueprint per pedestrian.
         pedestrian_seed: seed of the server's pedestrian RNG (navigation spawn locations, destinations).
         traffic_seed: seed of the traffic manager's random device.
@@ -142,11 +144,7 @@ class ScenePlan:
 
 
 def _check_scene_seed(scene_seed: object) -> int:
-    if isinstance(scene_seed, bool) or not isinstance(scene_seed, (int, np.integer)):
-        raise TypeError(f"scene_seed must be a non-negative integer, got {scene_seed!r}")
-    if scene_seed < 0:
-        raise ValueError(f"scene_seed must be a non-negative integer, got {scene_seed}")
-    return int(scene_seed)
+    return whole_number("scene_seed", scene_seed, low=0, type_error=TypeError)
 
 
 def _names(what: str, names: Iterable[str]) -> list[str]:
@@ -183,15 +181,16 @@ def plan_scene(
 ) -> ScenePlan:
     """Draw the scene named by ``scene_seed`` (pure and deterministic; no server needed).
 
-    Args:
+    Arguments:
         scene_seed: non-negative integer; every draw descends from it (:mod:`components.core.seeding`).
         maps: candidate maps; the choice is :func:`choose_map`.
         vehicle_blueprints: candidate NPC vehicle blueprint ids.
         walker_blueprints: candidate pedestrian blueprint ids (may be empty when ``max_pedestrians`` is 0).
         n_spawn_points: number of vehicle spawn points of the chosen map (≥ 1).
         ego_blueprints: candidate ego blueprint ids; default ``vehicle_blueprints``.
-        max_vehicles, max_pedestrians: the numbers of NPC vehicles and pedestrians are uniform on
-            ``{0, …, max}``; vehicles are capped by the spawn points left after the ego's.
+        max_vehicles: the number of NPC vehicles is uniform on ``{0, …, max_vehicles}``, capped by the spawn points
+            left after the ego's.
+        max_pedestrians: the number of pedestrians is uniform on ``{0, …, max_pedestrians}``.
 
     Candidate lists are sorted and de-duplicated first, so their order does not matter. Each choice
     uses its own named stream, so e.g. changing ``max_pedestrians`` leaves the map, ego and vehicles as
@@ -202,9 +201,9 @@ def plan_scene(
     vehicles = _names("vehicle_blueprints", vehicle_blueprints)
     walkers = _names("walker_blueprints", walker_blueprints)
     egos = vehicles if ego_blueprints is None else _names("ego_blueprints", ego_blueprints)
-    n_spawn = _int_arg("n_spawn_points", n_spawn_points, low=1)
-    max_vehicles = _int_arg("max_vehicles", max_vehicles, low=0)
-    max_pedestrians = _int_arg("max_pedestrians", max_pedestrians, low=0)
+    n_spawn = whole_number("n_spawn_points", n_spawn_points, low=1, type_error=TypeError)
+    max_vehicles = whole_number("max_vehicles", max_vehicles, low=0, type_error=TypeError)
+    max_pedestrians = whole_number("max_pedestrians", max_pedestrians, low=0, type_error=TypeError)
     if not egos:
         raise ValueError("no ego vehicle blueprint to choose from (ego_blueprints is empty)")
     if max_vehicles > 0 and not vehicles:
@@ -336,16 +335,6 @@ def probe_carla_server(host: str, port: int, timeout_s: float) -> None:
 # --- argument checks -------------------------------------------------------------------------------
 
 
-def _int_arg(name: str, value: object, low: int, high: int | None = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name} must be an integer, got {value!r}")
-    v = int(value)
-    if v < low or (high is not None and v > high):
-        rng = f">= {low}" if high is None else f"in [{low}, {high}]"
-        raise ValueError(f"{name} must be {rng}, got {v}")
-    return v
-
-
 def _float_arg(name: str, value: object, low: float, high: float, *, low_open: bool, high_open: bool) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise TypeError(f"{name} must be a number, got {value!r}")
@@ -387,15 +376,18 @@ class _Scene:
 class CarlaSimulator:
     """Renders pidc weathers on a CARLA server (the :class:`~components.simulate.base.Simulator` protocol).
 
-    Args:
-        height, width: image size in pixels (the RGB camera's ``image_size_y`` / ``image_size_x``).
-        host, port: the server's RPC address (the streaming port is ``port + 1``).
+    Arguments:
+        height: image height in pixels (the RGB camera's ``image_size_y``).
+        width: image width in pixels (the RGB camera's ``image_size_x``).
+        host: the server's RPC host.
+        port: the server's RPC port (the streaming port is ``port + 1``).
         timeout_s: client timeout (s): connecting, ticking and waiting for camera images.
         maps: maps the scene seed draws from; empty = every map the server offers.
         fixed_delta_seconds: simulated seconds per tick in synchronous mode, in (0, 0.1].
         settle_ticks: ticks between setting a weather and capturing (auto-exposure adapts over frames).
         traffic_manager_port: port of the traffic manager that drives the NPC vehicles.
-        max_vehicles, max_pedestrians: the numbers of NPCs are uniform on ``{0, …, max}`` per scene.
+        max_vehicles: the number of NPC vehicles is uniform on ``{0, …, max_vehicles}`` per scene.
+        max_pedestrians: the number of pedestrians is uniform on ``{0, …, max_pedestrians}`` per scene.
         fov: horizontal field of view of the camera (degrees), in (0, 180).
 
     The connection is opened at the first :meth:`render` (or by :meth:`connect`). Use it as a context
@@ -418,13 +410,13 @@ class CarlaSimulator:
         max_pedestrians: int = 10,
         fov: float = 90.0,
     ) -> None:
-        self.height = _int_arg("height", height, low=1)
-        self.width = _int_arg("width", width, low=1)
+        self.height = whole_number("height", height, low=1, type_error=TypeError)
+        self.width = whole_number("width", width, low=1, type_error=TypeError)
         if not isinstance(host, str) or not host.strip() or any(c.isspace() for c in host):
             raise ValueError(f"host must be a host name or IP address without spaces, got {host!r}")
         self.host = host
         # the server also listens on port + 1 (sensor streaming)
-        self.port = _int_arg("port", port, low=1, high=65534)
+        self.port = whole_number("port", port, low=1, high=65534, type_error=TypeError)
         self.timeout_s = _float_arg("timeout_s", timeout_s, 0.0, math.inf, low_open=True, high_open=True)
         if isinstance(maps, str):
             raise TypeError(f"maps must be a sequence of map names, not the string {maps!r}")
@@ -436,15 +428,17 @@ class CarlaSimulator:
         self.fixed_delta_seconds = _float_arg(
             "fixed_delta_seconds", fixed_delta_seconds, 0.0, 0.1, low_open=True, high_open=False
         )
-        self.settle_ticks = _int_arg("settle_ticks", settle_ticks, low=1)
-        self.traffic_manager_port = _int_arg("traffic_manager_port", traffic_manager_port, low=1, high=65535)
+        self.settle_ticks = whole_number("settle_ticks", settle_ticks, low=1, type_error=TypeError)
+        self.traffic_manager_port = whole_number(
+            "traffic_manager_port", traffic_manager_port, low=1, high=65535, type_error=TypeError
+        )
         if self.traffic_manager_port in (self.port, self.port + 1):
             raise ValueError(
                 f"traffic_manager_port {self.traffic_manager_port} collides with the server's ports "
                 f"{self.port} (RPC) and {self.port + 1} (streaming)"
             )
-        self.max_vehicles = _int_arg("max_vehicles", max_vehicles, low=0)
-        self.max_pedestrians = _int_arg("max_pedestrians", max_pedestrians, low=0)
+        self.max_vehicles = whole_number("max_vehicles", max_vehicles, low=0, type_error=TypeError)
+        self.max_pedestrians = whole_number("max_pedestrians", max_pedestrians, low=0, type_error=TypeError)
         self.fov = _float_arg("fov", fov, 0.0, 180.0, low_open=True, high_open=True)
         self._carla = import_carla()
         self._client: Any = None

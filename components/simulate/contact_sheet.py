@@ -16,6 +16,7 @@ from collections.abc import Mapping, Sequence
 import cv2
 import numpy as np
 
+from components.core.checks import whole_number
 from components.core.files import atomic_path
 from components.core.weather import PARAMETERS, PREDICTED
 
@@ -63,8 +64,7 @@ def contact_sheet(
 
     Shape: (len(scene_seeds)·6·H, W_label + steps·W, 3) with H×W the simulator's image size.
     """
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 2:
-        raise ValueError(f"contact sheet steps must be an int >= 2, got {steps!r}")
+    whole_number("contact sheet steps", steps, low=2)
     seeds = list(scene_seeds)
     if not seeds:
         raise ValueError("contact sheet needs at least one scene seed")

@@ -1,6 +1,6 @@
 """The simulated dataset: a deterministic plan, sharded files, atomic writes and validated reading.
 
-Layout under the data root (``data/`` by default)::
+Layout under the data root (``data/`` by default):
 
     data/manifest.json                 # counts, ranges, resolution, renderer version, content hash
     data/<split>/shard-00000.npz       # images uint8 (k, H, W, 3) RGB, weather float64 (k, 13),
@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from components.core import seeding, weather
+from components.core.checks import whole_number
 from components.core.files import atomic_write_bytes, sha256_file
 
 __all__ = [
@@ -164,8 +165,7 @@ def plan_split(
     if name not in SPLITS:
         raise ValueError(f"unknown split {name!r}; splits are {', '.join(SPLITS)}")
     for label, v in (("size", size), ("images_per_scene", images_per_scene), ("shard_size", shard_size)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v <= 0:
-            raise ValueError(f"split {name!r}: {label} must be a positive integer, got {v!r}")
+        whole_number(f"split {name!r}: {label}", v, low=1)
     theta = box.sample(seeding.rng(seed, "data", name, "theta"), size)
     azimuth = weather.sample_azimuth(seeding.rng(seed, "data", name, "azimuth"), size)
     rows = np.empty((size, len(weather.ALL_NAMES)), dtype=np.float64)

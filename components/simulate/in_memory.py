@@ -6,7 +6,7 @@ byte the images of the ``generate`` stage's shards (``tests/test_dataset.py`` ho
 are images the pipeline never sees (the cue networks' training sets, ``benchmarks/bench_splits.py``'s test-like
 splits). Nothing is written; the caller keeps what it needs.
 
-Used by ``scripts/train_sun_head.py``, ``benchmarks/bench_scale.py`` and ``benchmarks/bench_splits.py``.
+Used by ``scripts/train_sun_head.py``, ``benchmarks/studies/bench_scale.py`` and ``benchmarks/bench_splits.py``.
 """
 
 from __future__ import annotations

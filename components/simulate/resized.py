@@ -2,8 +2,8 @@
 
 The embedded renderer samples each pixel at its centre; a camera integrates light over the pixel, and an image made
 larger and resized does too. Models trained on the renderer's own ``height × width`` images are overconfident on such
-images, and models trained on renders of varying size, resized, cover them (BENCHMARKS.md "Images of another
-resolution", "The same rain at every image size"). ``simulator.render_sizes: [low, high]`` in ``params.yaml`` makes
+images, and models trained on renders of varying size, resized, cover them (docs/studies/other-resolutions.md,
+docs/studies/renderer-2-rain.md). ``simulator.render_sizes: [low, high]`` in ``params.yaml`` makes
 every stage render so: :func:`components.simulate.base.make_simulator` returns a :class:`ResizedRenders`.
 
 - :func:`render_height`: the render height of a scene, uniform in ``low..high`` pixels, drawn from its scene seed alone
@@ -25,6 +25,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from components.core import seeding
+from components.core.checks import whole_number
 from components.core.images import render_shape
 from components.simulate.procedural import ProceduralSimulator
 
@@ -82,9 +83,8 @@ def render_height(scene_seed: int, low: int, high: int) -> int:
     """The render height of scene ``scene_seed``: uniform in ``low..high`` pixels, from the scene seed alone."""
     if not 1 <= low <= high:
         raise ValueError(f"render sizes must satisfy 1 ≤ low ≤ high, got [{low}, {high}]")
-    if isinstance(scene_seed, bool) or not isinstance(scene_seed, (int, np.integer)) or scene_seed < 0:
-        raise ValueError(f"scene_seed must be a non-negative int, got {scene_seed!r}")
-    return int(seeding.rng(int(scene_seed), "render_size").integers(low, high + 1))
+    scene_seed = whole_number("scene_seed", scene_seed, low=0)
+    return int(seeding.rng(scene_seed, "render_size").integers(low, high + 1))
 
 
 class ResizedRenders:

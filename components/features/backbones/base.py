@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from components.core.checks import whole_number
 from components.features.backbones.imageops import check_images, resize_area, to_unit_chw
 
 __all__ = ["Backbone"]
@@ -52,8 +53,7 @@ class Backbone(nn.Module):
     #: many full-image temporaries (the cues: ~60 of them) runs faster when a call's temporaries fit the CPU's caches.
     #: Set it only where each image's features are computed alone, so that they are the same to the bit in any chunk
     #: (the tiny, and the cues but for their wet-road block, whose detector's convolutions round by batch to ~1e-7; not
-    #: the cnn, whose convolutions round by batch size; BENCHMARKS.md "Features and kernel densities in cache-sized
-    #: pieces")
+    #: the cnn, whose convolutions round by batch size; docs/studies/cache-sized-pieces.md)
     cpu_chunk: ClassVar[int | None] = None
 
     def __init__(self) -> None:
@@ -109,8 +109,7 @@ class Backbone(nn.Module):
         features of its current weights. The module's training mode is restored afterwards.
         """
         images = check_images(images, who=self.name)
-        if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
-            raise ValueError(f"{self.name}: batch_size must be a positive integer, got {batch_size!r}")
+        whole_number(f"{self.name}: batch_size", batch_size, low=1)
         n = images.shape[0]
         out = np.empty((n, self.dim), dtype=np.float32)
         starts = range(0, n, int(batch_size))

@@ -4,7 +4,7 @@ What it sees. The image reduced to 64×64 by area interpolation (2×2 pixel mean
 render; other sizes likewise; said once), as sRGB values in [0, 1], plus one constant channel holding
 the normalised image row (−1 at the top, +1 at the bottom): rows are a depth proxy in a forward
 camera (sky and horizon far, road near), so filters can tell sky from road and haze at the horizon
-from haze near the car. Architecture (``width = w``, default 16)::
+from haze near the car. Architecture (``width = w``, default 16):
 
     (n, 4, 64, 64) → 4 × [conv3×3 stride 2, GroupNorm, SiLU]: w, 2w, 3w, 4w channels at 32, 16, 8, 4 px
                   → [conv3×3, GroupNorm, SiLU]: 6w channels at 4×4
@@ -31,11 +31,11 @@ from __future__ import annotations
 import math
 from typing import Any, ClassVar
 
-import numpy as np
 import torch
 from torch import nn
 
 from components.core import seeding
+from components.core.checks import whole_number
 from components.features.backbones.base import Backbone
 
 __all__ = ["ConvBackbone"]
@@ -61,11 +61,8 @@ class ConvBackbone(Backbone):
     def __init__(self, seed: int = 0, dim: int = 64, width: int = 16) -> None:
         super().__init__()
         for key, value, lo, hi in (("dim", dim, 1, 4096), ("width", width, 4, 256)):
-            if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
-                raise ValueError(f"cnn: {key} must be an integer in [{lo}, {hi}], got {value!r}")
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise ValueError(f"cnn: seed must be a non-negative integer, got {seed!r}")
-        self.seed, self.dim, self.width = int(seed), dim, width
+            whole_number(f"cnn: {key}", value, low=lo, high=hi)
+        self.seed, self.dim, self.width = whole_number("cnn: seed", seed, low=0), dim, width
         w = width
         self.features = nn.Sequential(
             _block(4, w, 2),

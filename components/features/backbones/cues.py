@@ -1,109 +1,18 @@
 """``cues``: interpretable physical weather cues computed from the pixels (no learning, frozen).
 
-What it sees. Each feature is a summary statistic that image-formation physics ties to one or more
-weather parameters (see the renderer's physics in :mod:`components.simulate`), computed on the 128×128 sRGB image
-(other sizes are converted by area interpolation). With ``v`` the sRGB luma (0–1):
+Each of the 377 features is a summary statistic that image-formation physics ties to one or more weather parameters,
+computed on the 128×128 sRGB image (other sizes are converted by area interpolation): brightness and its quantiles,
+the dark channel (haze), local contrast by image row (a depth proxy), the sky's colour, saturation, edge orientations
+(rain streaks), lens-drop blur, the road, colour temperature and lights; regional photometry in linear luminance (a
+4×4 grid, row profiles, walls, the sky's distribution); detectors of rain streaks, sunlit against shadowed ground and
+puddles; the sky's thumbnail in CIE L*a*b*; and two small frozen networks learned once from the renderer's labels, the
+wet road by distance (:mod:`components.features.backbones.wet_road`) and the weather reader with its sun head
+(:mod:`components.features.backbones.weather_reader`). It is the interpretable end of the backbone comparison: a flow
+on these numbers can use only what physics says is visible. The region split assumes a forward-looking camera with
+the horizon near mid-image (true for the simulators' pitch of ±2°). Features are not standardised (downstream code
+z-scores them with training-set statistics); the forward pass uses only ONNX-exportable operations.
 
-- ``brightness`` (15): mean, std and 2/25/50/75/98 % quantiles of ``v`` and an 8-bin histogram —
-  sun altitude, night, cloud dimming, rain darkening.
-- ``haze`` (8): the dark channel (He et al. 2009; per-pixel RGB minimum, ~6×6-pixel minimum filter): its mean
-  over the image and over four row bands, the airlight estimate (99.5 % quantile), the mean
-  transmission ``1 − 0.95·dark/A`` and dark/brightness — Koschmieder fog ``I = J t + A (1 − t)`` lifts
-  the dark channel towards the airlight.
-- ``contrast_row`` (8): local contrast (std/mean in 8×8 blocks) averaged in 8 image-row bands; rows
-  are a depth proxy (horizon far, bottom near), so fog lowers the upper bands more than the lower ones.
-- ``sky`` (10): mean R, G, B, luma, std, blue chromaticity, saturation and vertical gradient of the top
-  30 % of rows (mostly sky), luma and blue chromaticity of the horizon band — sky colour follows sun
-  altitude (Rayleigh), clouds whiten and flatten it, fog replaces it by airlight.
-- ``saturation`` (4): HSV saturation mean and std, upper- and lower-half means — fog, overcast and
-  night desaturate.
-- ``edges`` (18): 8-bin histograms of edge orientation (mod 180°; bin 0 = vertical structures,
-  bins 1–3 and 7–5 = slanted one way or the other) weighted by squared Sobel magnitude, at full
-  resolution and on a high-passed image (thin structures), plus the log mean energies — rain
-  streaks add oriented thin edges whose slant follows the wind; fog and clouds lower the energy.
-- ``lens`` (5): band-pass (difference of box blurs) energies at two scales, fraction of strong
-  band-pass pixels, its kurtosis, fraction of 8×8 blocks much smoother than the image's median block
-  — lens drops are blurred blobs that erase local detail.
-- ``road`` (6): in the lower-centre region (mostly road): mean, std and 98 % quantile of ``v``, fraction
-  brighter than the sky band, saturation, blue chromaticity — puddles mirror the sky and lights.
-- ``colour`` (4): mean chromaticities r and b, log(R/B) of mean linear RGB and of the brightest 2 %
-  pixels (white-patch illuminant estimate) — colour temperature of sun, twilight, lamps.
-- ``lights`` (2): fractions of near-black (``v < 0.05``) and clipped (``v > 0.95``) pixels — night,
-  lamps, headlights.
-
-Version 2 adds regional photometry (161), computed in linear radiance ``Y`` (luminance) at full resolution:
-
-- ``grid`` (48): a 4×4 grid of mean linear RGB as log luminance, log(R/G) and log(B/G) — where light falls:
-  sky vs ground, lit vs shadowed side, the warm low sun and the blue ambient of shade.
-- ``road`` (8) and ``image`` (9): quantiles of log ``Y`` over the road region and the whole image, and the road's
-  90 %/10 % spread — sunlit against shadowed ground is direct sun (E_sun·sin h) against ambient light, which
-  clouds and fog flatten; puddles add bright mirrored sky.
-- ``walls`` (6): log ``Y`` quantiles of the outer 20 % of columns at rows 30–65 % — vertical surfaces, lit as
-  cos h while the road is lit as sin h.
-- ``rows`` (80): 16 row-band profiles of log ``Y``, blue chromaticity, dark channel, fine-detail energy and the
-  log ratio of horizontal to vertical gradient energy (vertical rain streaks) — depth-resolved fog, sky gradient
-  (Rayleigh) and rain.
-- ``sky_distribution`` (10): quantiles of the sky's saturation and blue chromaticity and the share of saturated
-  (clear blue) sky pixels — cloud cover.
-
-Version 3 adds rain, shadow and puddle detectors (32), at full resolution:
-
-- ``ridge`` (18): thin bright lines — a pixel's sRGB luma minus the mean of its two neighbours across the line, for
-  vertical lines and the two diagonals (``slash`` ╱ and ``backslash`` ╲), averaged over 5 pixels along the line (a
-  streak's length): the share of pixels above 0.005, 0.01, 0.02 and 0.04 and the log mean positive response over the
-  image and over its upper half — rain streaks (count ∝ precipitation, slant from the wind) against the sky.
-- ``ground`` (5): the lower 40 % of rows split into lit and shadowed pixels by Otsu's threshold on log ``Y``: the lit
-  share, the lit-minus-shadowed contrast of log ``Y`` and of log(R/B), and log(R/B) of each class — the shadowed
-  ground sees only sky light, the lit ground the sun too, whose colour reddens with the air mass (low sun).
-- ``puddle`` (9): in three road bands (rows 55–70, 70–85, 85–100 %, central 60 % of columns), the share of pixels
-  bluer than the sky's mean blue chromaticity − 0.02, brighter than 1.5 × the band's median and brighter than
-  0.6 × the sky's mean luma — puddles mirror the sky and lights and darken the road under them.
-
-Version 4 adds the sky's thumbnail (72):
-
-- ``sky_lab`` (72): the upper three rows of an 8×8 lattice of cells (the sky and the horizon at the simulators'
-  pitch), each cell's mean linear RGB (area integration of light) in CIE L*a*b* / 100 — the ``tiny`` backbone's
-  first three lattice rows, to the bit. The glow around a sun low in the sky, its height and colour (the air mass),
-  finer than the cues' 4×4 grid, and where clouds break the sky's gradient.
-
-Version 5 adds the wet road by distance (18), from a small learned detector of flooded road pixels, frozen
-(:mod:`components.features.backbones.wet_road`):
-
-- ``wet_road`` (18): in nine row bands from just below the horizon to ~5 m ahead, the share of the road that is wet
-  and the road's share of the band — deposits flood the road where a static puddle noise lies below their level, so the
-  wet share of the road follows deposits; 10–25 m ahead it averages many periods of the noise (an exact reader of
-  the shares by distance would read deposits to 3.0, against ~7 for the version-4 cues; ``benchmarks/bench_puddles.py``).
-  Unlike the other cues it is learned: from the renderer's own road and wet masks (``scripts/train_wet_road.py``).
-
-Version 6 adds the weather reader (12), a small frozen convolutional network that guesses each parameter from the
-whole image (:mod:`components.features.backbones.weather_reader`), and retrains the wet-road detector on 100 000
-images instead of 7 500 (both on a GPU, once; their cards say how):
-
-- ``reader`` (12): per parameter θ_k, the reader's mean on the prior box's unit scale and its log standard deviation,
-  averaged over the image and its mirror. Learned from the renderer's weathers (``scripts/train_weather_reader.py``);
-  the flow downstream learns how far to trust each.
-
-Version 7 adds the reader's sun head (2): a second, wider head on the reader's frozen convolutions that reads only the
-sun's altitude (its mean on the unit scale and log standard deviation, averaged over the image and its mirror),
-trained on the CPU from 100 000 further images (``scripts/train_sun_head.py``; BENCHMARKS.md, "Cues version 7"). The
-reader's own head shares its hidden units among the six parameters and reads the daytime sun to ~4°; the sun head to
-~3.5°.
-
-Measured (BENCHMARKS.md, "Models that read the images"): on 50 000 training images the flow on the 241 version-2
-cues gains 6.2 nats where the 80 version-1 cues gain 4.9; the 32 version-3 cues add 0.2 nats (rain's daytime
-error 5.3 → 4.8). The 72 version-4 cues add 0.07–0.10 nats with one flow and read the daytime sun to 5.3–5.7° instead
-of 6.3–6.5°; with two flows 7.47–7.51 nats, calibrated on two seeds (BENCHMARKS.md, "The sky's thumbnail beside the
-cues"). The thumbnail's lower rows are left out: beside the cues they made the flow overconfident about night fog.
-
-Why. It is the interpretable end of the backbone comparison: a flow on these 377 numbers can only use
-what physics says is visible, so comparing it with the learned ``cnn`` and the raw ``tiny`` thumbnail
-shows how much a learned representation adds. The region split assumes a forward-looking camera with
-the horizon near mid-image (true for the simulators' pitch of ±2°).
-
-Quantiles come from 256-bin histograms (resolution 1/256, like the 8-bit input). Features are not
-standardised: downstream code should z-score them with training-set statistics. The forward pass
-uses only ONNX-exportable operations (when written, ``torch.onnx.export`` with a dynamic batch
-and onnxruntime agreed with torch to 1e-6; not part of the test suite, the export takes ~20 s).
+What each block reads: docs/backbones.md; the versions of the cues and what each added: CHANGELOG.md.
 
 Used by every stage but ``generate``, and by the ``pidc`` CLI.
 """
@@ -270,8 +179,8 @@ def _range_quantiles(v: torch.Tensor, percents: tuple[int, ...], lo: float, hi: 
 
 
 def _regional(x: torch.Tensor, lin: torch.Tensor) -> torch.Tensor:
-    """Version-2 cues of sRGB images ``x (n, 3, H, W)`` in [0, 1], ``lin`` their linear RGB → ``(n, 161)`` (see the
-    module docstring)."""
+    """Version-2 cues of sRGB images ``x (n, 3, H, W)`` in [0, 1], ``lin`` their linear RGB → ``(n, 161)`` (what each
+    block reads: docs/backbones.md)."""
     n, _, h, w = x.shape
     y = 0.2126 * lin[:, 0] + 0.7152 * lin[:, 1] + 0.0722 * lin[:, 2]  # (n, H, W) linear luminance
     log_y = torch.log(y + 1e-3)
@@ -430,7 +339,7 @@ class CuesBackbone(Backbone):
     trainable: bool = False
     input_size: tuple[int, int] = (128, 128)
     feature_names: tuple[str, ...] = FEATURE_NAMES
-    cpu_chunk: ClassVar[int | None] = 16  # 0.6–0.7× the time of whole batches of 256 (BENCHMARKS.md)
+    cpu_chunk: ClassVar[int | None] = 16  # 0.6–0.7× the time of batches of 256 (docs/studies/cache-sized-pieces.md)
 
     def __init__(self) -> None:
         super().__init__()
@@ -458,6 +367,9 @@ class CuesBackbone(Backbone):
 
         Region and colour statistics use the 2×2 area-averaged 64×64 image (4× cheaper, same means);
         contrast, edges and the clipped/dark fractions use full resolution (thin streaks, lamps).
+
+        One method on purpose (over 80 lines): it reads as the table of cue blocks (docs/backbones.md), block after
+        block in the order of :data:`FEATURE_NAMES`, sharing the intermediate images every block needs.
         """
         if x.ndim != 4 or x.shape[1] != 3 or x.shape[2] < 16 or x.shape[3] < 16:
             raise ValueError(f"cues: expected a tensor (n, 3, H, W) with H, W ≥ 16, got shape {tuple(x.shape)}")

@@ -27,10 +27,12 @@ M = TypeVar("M", bound=nn.Module)
 def load_frozen(build: Callable[[dict[str, Any]], M], weights: Path, card: Path, what: str, script: str) -> M:
     """``build(card)``'s network with ``weights`` loaded, frozen (no gradients) and in eval mode.
 
-    Args:
+    Arguments:
         build: makes the untrained network from the card's fields (e.g. its channels).
-        weights, card: the ``.pt`` state dict and its JSON card (with ``"sha256"``).
-        what, script: the network's name and the command that trains it, for the errors.
+        weights: the ``.pt`` state dict.
+        card: its JSON card (with ``"sha256"``).
+        what: the network's name, for the errors.
+        script: the command that trains it, for the errors.
 
     Raises:
         FileNotFoundError: the weights or the card are missing.

@@ -25,6 +25,7 @@ from typing import Any, ClassVar
 import torch
 import torch.nn.functional as F
 
+from components.core.checks import whole_number
 from components.features.backbones.base import Backbone
 
 __all__ = ["TinyImagesBackbone", "srgb_to_lab"]
@@ -63,12 +64,11 @@ class TinyImagesBackbone(Backbone):
     version: ClassVar[str] = "1"
     trainable: bool = False
     input_size: tuple[int, int] = (128, 128)
-    cpu_chunk: ClassVar[int | None] = 16  # 0.5–0.7× the time of whole batches of 256 (BENCHMARKS.md)
+    cpu_chunk: ClassVar[int | None] = 16  # 0.5–0.7× the time of batches of 256 (docs/studies/cache-sized-pieces.md)
 
     def __init__(self, grid: int = 8) -> None:
         super().__init__()
-        if isinstance(grid, bool) or not isinstance(grid, int) or not 2 <= grid <= 32:
-            raise ValueError(f"tiny: grid must be an integer in [2, 32] (cells per side), got {grid!r}")
+        whole_number("tiny: grid", grid, low=2, high=32, hint=" (cells per side)")
         self.grid = grid
         self.dim = 4 * grid * grid
 

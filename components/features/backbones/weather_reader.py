@@ -101,8 +101,8 @@ class SunHead(nn.Module):
 
     Why. The reader's own head shares its 256 hidden units among six parameters and reads the daytime sun to ~4°; a
     wider head that reads only the sun, trained on the frozen map of 100 000 further images, reads it to ~3.5°
-    (BENCHMARKS.md, "Cues version 7"). A wider one on 200 000 images reads it alone to 3.1° but left the champion's
-    sun where it was (measured, not adopted: "A sun head on 200 000 images"). Trained by
+    (docs/studies/cues-7.md). A wider one on 200 000 images reads it alone to 3.1° but left the champion's
+    sun where it was (measured, not adopted: docs/studies/sun-head-200k.md). Trained by
     ``python scripts/train_sun_head.py``; its card names the reader whose convolutions it reads (:func:`load_sun_head`
     refuses another).
     """

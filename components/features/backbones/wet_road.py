@@ -4,8 +4,8 @@ Why. Deposits flood a road pixel where the renderer's static puddle noise lies b
 ``precipitation_deposits`` (:mod:`components.simulate.procedural.reflections`), so the *wet share of the road* follows
 deposits, up to which part of the noise a scene shows. Near the car a camera sees a few noise periods and the share
 varies from scene to scene; 10–25 m ahead it averages many: a reader of the exact wet share of the road in distance
-bands would read deposits to 3.0 (median error, deposits in %; ``benchmarks/bench_puddles.py``, BENCHMARKS.md
-"Deposits: what the road's wet share can tell"), where the hand-made cues read them to ~7. Telling a wet pixel from a
+bands would read deposits to 3.0 (median error, deposits in %; ``benchmarks/studies/bench_puddles.py``,
+docs/studies/deposits.md), where the hand-made cues read them to ~7. Telling a wet pixel from a
 dry one is the hard part: a puddle mirrors whatever lies above the horizon, darker or brighter than the road, and far
 away it is a sliver of one pixel. No hand-made rule did it; this detector is learned, once, from the renderer's own
 masks, and then frozen like the other cues.

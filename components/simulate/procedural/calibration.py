@@ -1,7 +1,7 @@
 """The procedural renderer's calibration table: every free constant, with its unit and meaning.
 
 The renderer (:mod:`components.simulate.procedural.renderer` and its helpers) reads numbers only from
-:data:`CALIBRATION`. Constants marked "unverified" in ``simulator.md`` are free parameters; if CARLA
+:data:`CALIBRATION`. Constants marked "unverified" (docs/simulators.md) are free parameters; if CARLA
 images become available they are the knobs to fit. :func:`calibration_hash` fingerprints the table
 and enters the renderer's ``version`` string, so datasets record which calibration made them.
 
@@ -29,7 +29,7 @@ def _c(value: object, unit: str, meaning: str) -> object:
 class Calibration:
     """All constants of the procedural renderer (frozen; one instance :data:`CALIBRATION`)."""
 
-    # --- sun and sky (simulator.md §2.2) ----------------------------------------------------------
+    # --- sun and sky (docs/simulators.md) ----------------------------------------------------------
     sun_irradiance: float = _c(3.2, "rel", "E0: direct normal sun irradiance above the atmosphere")
     rayleigh_tau: float = _c(0.0088, "1", "Rayleigh optical depth coefficient, T_c = exp(-k λ^-4.05 m)")
     wavelengths_um: tuple = _c((0.68, 0.55, 0.44), "µm", "wavelengths of the R, G, B channels")

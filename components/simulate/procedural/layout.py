@@ -240,7 +240,12 @@ def _pedestrian(b: _Builder, rng: np.random.Generator, x: float, z: float) -> No
 
 
 def sample_layout(rng: np.random.Generator, cal: Calibration = CALIBRATION) -> Layout:
-    """Draw one scene layout from the layout stream ``rng`` (weather-independent)."""
+    """Draw one scene layout from the layout stream ``rng`` (weather-independent).
+
+    One function on purpose (over 80 lines): its sequence of draws from ``rng`` *is* the dataset (every scene of
+    every split descends from it), so it reads top to bottom in the order of the draws; a split that reordered one
+    draw would change every image.
+    """
     arch_idx = int(rng.choice(len(cal.archetypes), p=np.asarray(cal.archetype_weights) / sum(cal.archetype_weights)))
     arch = cal.archetypes[arch_idx]
     lw = cal.lane_width

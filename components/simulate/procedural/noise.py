@@ -1,7 +1,7 @@
 """Static noise fields: periodic fractal (fBm) textures and their sampling.
 
 A texture is a periodic ``N × N`` float32 field with a power-law spectrum (amplitude ∝ f^-(H+1),
-the fBm of ``simulator.md`` §2.3), standardized to zero mean and unit variance. Sampling returns
+the fBm of docs/simulators.md), standardized to zero mean and unit variance. Sampling returns
 approximately uniform quantiles (Gaussian CDF of the standardized value), so thresholding a sample
 at ``q`` covers a fraction ≈ ``q`` of the area: coverage follows cloudiness/deposits directly.
 

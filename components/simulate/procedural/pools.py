@@ -50,7 +50,7 @@ class LensPool:
 def rain_pool(rng: np.random.Generator, height: int, width: int, cal: Calibration) -> RainPool:
     """The scene's rain-drop pool: ``rain_drop_pool`` drops at every image size, the same drops (their positions
     scale with the image; a pool scaled with the pixel count drew 4× the drops at 256 × 256, so the rain's look and
-    what it tells depended on the render size: BENCHMARKS.md "The same rain at every image size")."""
+    what it tells depended on the render size: docs/studies/renderer-2-rain.md)."""
     n = int(cal.rain_drop_pool)
     margin = cal.streak_max_px * height / 128.0
     col = rng.uniform(-margin, width + margin, n)

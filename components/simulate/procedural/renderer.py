@@ -24,7 +24,6 @@ Part of the embedded renderer: used by the ``generate``, ``evaluate`` (PPCs) and
 from __future__ import annotations
 
 import math
-import numbers
 import platform
 import threading
 from collections import OrderedDict
@@ -34,6 +33,7 @@ import cv2
 import numpy as np
 
 from components import NUMPY_DISPATCH_OFF, numpy_kernels
+from components.core.checks import whole_number
 from components.core.images import RENDER_SIDES
 from components.core.opencv import ipp_off
 from components.core.weather import complete_weather
@@ -56,11 +56,7 @@ cv2.setNumThreads(1)
 
 
 def _check_seed(scene_seed: object) -> int:
-    if isinstance(scene_seed, bool) or not isinstance(scene_seed, numbers.Integral):
-        raise ValueError(f"scene_seed must be a non-negative int, got {type(scene_seed).__name__} {scene_seed!r}")
-    if int(scene_seed) < 0:
-        raise ValueError(f"scene_seed must be a non-negative int, got {int(scene_seed)}")
-    return int(scene_seed)
+    return whole_number("scene_seed", scene_seed, low=0)
 
 
 def _check_numpy_kernels() -> None:
@@ -88,8 +84,7 @@ class ProceduralSimulator:
         self, height: int = 128, width: int = 128, *, cache_size: int = 16, calibration: Calibration = CALIBRATION
     ) -> None:
         for name, v in (("height", height), ("width", width), ("cache_size", cache_size)):
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral):
-                raise TypeError(f"{name} must be an int, got {type(v).__name__}")
+            whole_number(name, v, error=TypeError)
         low, high = RENDER_SIDES
         if not (low <= height <= high and low <= width <= high):
             raise ValueError(f"image size must be within {low}..{high} pixels, got {height}×{width}")

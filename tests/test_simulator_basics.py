@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -259,3 +260,33 @@ def test_the_renders_do_not_depend_on_opencvs_simd_kernels():
     features_off, limited = run({"OPENCV_CPU_DISABLE": ",".join(dispatched)})
     assert all(f"*{f}?" in features_off.split() for f in dispatched), features_off
     assert limited == default, (features, features_off)
+
+
+def test_the_renders_do_not_depend_on_the_blas_kernels():
+    """The renders are the same whichever kernels numpy's OpenBLAS picks for this CPU: the linear radiance (float32,
+    far more sensitive than the uint8 images) of scenes rendered in a fresh process under OpenBLAS's SSE3 kernels
+    (``OPENBLAS_CORETYPE=Prescott``, which every x86-64 CPU runs) equals the default process's to the byte. Before
+    the renderer's products were written out (docs/studies/openblas-kernels.md), AVX-512's fused multiply-adds made
+    them differ on every scene."""
+    if platform.machine().lower() not in {"x86_64", "amd64"}:
+        pytest.fail(f"OpenBLAS's x86-64 kernel names do not apply on {platform.machine()}: this test needs x86-64")
+    probe = (
+        "import components, hashlib, numpy as np; "
+        "from components.simulate.procedural import ProceduralSimulator; "
+        "s = ProceduralSimulator(96, 96); "
+        "rs = [s.radiance({'cloudiness': c, 'fog_density': f, 'precipitation': p, 'sun_altitude_angle': a, "
+        "'precipitation_deposits': d, 'wind_intensity': 30.0, 'sun_azimuth_angle': 40.0 * k}, k) for k, (c, f, p, a, d) in enumerate("
+        "[(10, 5, 80, 30, 60), (70, 40, 20, -20, 90), (30, 0, 50, 60, 40)])]; "
+        "print(hashlib.sha256(np.stack(rs).tobytes()).hexdigest())"
+    )
+    root = Path(__file__).resolve().parents[1]
+
+    def run(coretype: str | None) -> str:
+        env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_CORETYPE"}
+        if coretype is not None:
+            env["OPENBLAS_CORETYPE"] = coretype
+        out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env, cwd=root)
+        assert out.returncode == 0, out.stderr
+        return out.stdout.strip().splitlines()[-1]
+
+    assert run("Prescott") == run(None)

@@ -45,7 +45,8 @@ _LUTS: dict[float, np.ndarray] = {}
 def exposure_scale(radiance: np.ndarray, cal: Calibration = CALIBRATION) -> float:
     """Exposure multiplier for channel-planar radiance (3, N) in relative units."""
     sub = radiance[:, ::3]
-    lum = np.minimum(_LUMA @ sub, cal.luminance_clip)
+    # written out, not ``_LUMA @ sub``: numpy's BLAS rounds by CPU (docs/studies/openblas-kernels.md)
+    lum = np.minimum(_LUMA[0] * sub[0] + _LUMA[1] * sub[1] + _LUMA[2] * sub[2], cal.luminance_clip)
     mean = float(lum.mean()) * cal.radiance_to_luminance
     ev = math.log2(max(mean, 1e-9) * 100.0 / 12.5)
     ev = min(max(ev, cal.exposure_window[0]), cal.exposure_window[1])

@@ -55,6 +55,16 @@ ALGORITHM_VERSION = 3
 cv2.setNumThreads(1)
 
 
+def _dot3(v: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """``v @ s`` for float32 directions ``v`` (N, 3) and a vector ``s`` (3,), as numpy products and sums, left to right.
+
+    The same bits on every CPU: ``@`` hands the product to numpy's OpenBLAS, whose kernel is chosen by CPU (AVX-512's
+    ``SkylakeX`` fuses the multiply-adds, AVX2's ``Haswell`` does not), so its float32 results differ in the last bit
+    (docs/studies/openblas-kernels.md). Returns ``(N,)`` float32.
+    """
+    return v[:, 0] * s[0] + v[:, 1] * s[1] + v[:, 2] * s[2]
+
+
 def _check_seed(scene_seed: object) -> int:
     return whole_number("scene_seed", scene_seed, low=0)
 
@@ -144,10 +154,10 @@ class ProceduralSimulator:
         n0 = len(sc.sky_pixels)
         # 1-2: sky (direct and reflected rays) with clouds
         alpha = cloud_coverage(sc.sky_quantile, cloud, cal)
-        sky = sky_radiance(st, sc.sky_dirs[:, 1], sc.sky_dirs @ s, alpha, cloud, cal)
+        sky = sky_radiance(st, sc.sky_dirs[:, 1], _dot3(sc.sky_dirs, s), alpha, cloud, cal)
         # 3-4: surfaces
         vis = sun_visibility(sc.shadow, sc.height * sc.width, st.sun_dir, cal)
-        direct = np.maximum(sc.normal @ s, 0.0) * vis
+        direct = np.maximum(_dot3(sc.normal, s), 0.0) * vis
         sun = (st.sun / math.pi).astype(np.float32)[:, None]
         amb = st.ambient.astype(np.float32)[:, None]
         L = sc.albedo * (direct[None, :] * sun + sc.ambient_factor[None, :] * amb)
@@ -178,7 +188,7 @@ class ProceduralSimulator:
             L[:, px] = under + a[None, :] * (puddle - under)
         # 7: fog, haze, rain extinction and airlight
         t = np.exp(-beta * sc.fog_path)
-        cos_g = sc.dirs @ s
+        cos_g = _dot3(sc.dirs, s)
         air_amb = (st.ambient * cal.airlight_ambient).astype(np.float32)[:, None]
         air_sun = (st.sun * cal.airlight_sun * w["scattering_intensity"]).astype(np.float32)[:, None]
         airlight = air_amb + henyey_greenstein(cos_g, cal.airlight_g)[None, :] * air_sun

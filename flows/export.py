@@ -14,6 +14,7 @@ again: a re-run of the stage, or one after a kill, adds only the versions it lac
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from pathlib import Path
@@ -82,6 +83,7 @@ def write_onnx(model_id: str, params_path: str, threads: int | None = None) -> d
             "height": params.simulator.height,
             "width": params.simulator.width,
             "render_sizes": None if params.simulator.render_sizes is None else list(params.simulator.render_sizes),
+            **_recorded(paths.data),
         },
         "metrics": extra.get("metrics", {}),
         "data_hash": extra.get("data_hash"),
@@ -91,6 +93,23 @@ def write_onnx(model_id: str, params_path: str, threads: int | None = None) -> d
     t0 = time.perf_counter()
     folder = export_posterior(model, paths.registry / model_id, card=card, exporter=params.export.exporter)
     return {"folder": str(folder), "export_seconds": time.perf_counter() - t0}
+
+
+def _recorded(data: Path) -> dict:
+    """A recorded dataset's images as the card records them (``recorded``: the images imported, how many were
+    area-resized and their source sizes, from the data manifest's ``source``); nothing for rendered data. The
+    manifest is a DVC dep of the stage; a missing or unreadable one is an error naming it."""
+    path = data / "manifest.json"
+    try:
+        source = json.loads(path.read_text()).get("source")
+    except (OSError, ValueError) as e:
+        raise RuntimeError(
+            f"{path}: cannot read the data manifest ({e}); run the generate stage (`dvc repro`)"
+        ) from None
+    if not isinstance(source, dict) or source.get("kind") != "recorded":
+        return {}
+    keys = ("folders", "used", "resized", "source_sizes", "splits_from")
+    return {"recorded": {k: source.get(k) for k in keys}}
 
 
 @flow(name="export", log_prints=True)

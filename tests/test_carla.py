@@ -22,6 +22,7 @@ from components.core.config import CarlaConfig, SimulatorConfig
 from components.core.weather import ALL_NAMES, FIXED, NUISANCE, PARAMETERS, PREDICTED
 from components.simulate.base import Simulator
 from components.simulate.carla import (
+    TOWNS,
     CarlaConnectionError,
     CarlaSimulator,
     asynchronous_settings,
@@ -294,11 +295,28 @@ class FakeCarlaServer:
             conn.close()
 
 
+#: what a CARLA 0.9.16 server lists without its AdditionalMaps package: the towns, their layered variants, and a
+#: non-town map where no vehicle spawns (CARLA issue #9253)
+BASE_MAPS = [
+    f"/Game/Carla/Maps/{town}{variant}"
+    for town in ("Town01", "Town02", "Town03", "Town04", "Town05", "Town10HD")
+    for variant in ("", "_Opt")
+] + ["/Game/Carla/Maps/AnnotationColorLandscape"]
+#: ... and with it: Town06, Town07 and the large maps, one folder each
+FULL_MAPS = BASE_MAPS + [
+    "/Game/Carla/Maps/Town06",
+    "/Game/Carla/Maps/Town06_Opt",
+    "/Game/Carla/Maps/Town07",
+    "/Game/Carla/Maps/Town07_Opt",
+    "/Game/Carla/Maps/Town12/Town12",
+    "/Game/Carla/Maps/Town13/Town13",
+    "/Game/Carla/Maps/Town15/Town15",
+]
+
+
 @pytest.fixture
 def fake_carla() -> Iterator[FakeCarlaServer]:
-    server = FakeCarlaServer(
-        importlib.metadata.version("carla"), ["/Game/Carla/Maps/Town01", "/Game/Carla/Maps/Town03"]
-    )
+    server = FakeCarlaServer(importlib.metadata.version("carla"), FULL_MAPS)
     yield server
     server.close()
 
@@ -324,10 +342,25 @@ def test_version_mismatch_warns(fake_carla: FakeCarlaServer) -> None:
     sim.close()
 
 
+def test_the_default_towns_are_on_a_full_server_among_maps_that_are_no_towns(fake_carla: FakeCarlaServer) -> None:
+    with CarlaSimulator(port=fake_carla.port, timeout_s=TIMEOUT_S) as sim:
+        sim.connect()  # the server also lists AnnotationColorLandscape and the large maps: they are not drawn
+        assert sim.maps == TOWNS
+        assert {choose_map(seed, sim.maps) for seed in range(200)} == set(TOWNS)
+
+
 def test_configured_maps_must_exist_on_the_server(fake_carla: FakeCarlaServer) -> None:
-    sim = CarlaSimulator(port=fake_carla.port, timeout_s=TIMEOUT_S, maps=("Town01", "Town07"))
-    with pytest.raises(ValueError, match=r"Town07.*Town01, Town03"):
+    fake_carla.results["get_available_maps"] = BASE_MAPS  # no AdditionalMaps package: no Town06, Town07
+    sim = CarlaSimulator(port=fake_carla.port, timeout_s=TIMEOUT_S)
+    with pytest.raises(ValueError) as info:
         sim.connect()
+    message = str(info.value)
+    assert message.startswith("simulator.carla.maps: Town06, Town07 not on the server")
+    assert "whose towns are Town01, Town01_Opt, Town02" in message and "AdditionalMaps" in message
+    assert "AnnotationColorLandscape" not in message
+    sim = CarlaSimulator(port=fake_carla.port, timeout_s=TIMEOUT_S, maps=("Town01", "Town10HD_Opt"))
+    sim.connect()
+    sim.close()
 
 
 @pytest.mark.parametrize(
@@ -377,6 +410,14 @@ def test_a_service_that_is_not_carla_is_reported(answer: bytes, word: str) -> No
         ({"maps": "Town01"}, TypeError, "maps"),
         ({"maps": ("Town01", "Town01")}, ValueError, "duplicates"),
         ({"maps": ("Town01", "")}, ValueError, "maps"),
+        ({"maps": ()}, ValueError, "maps is empty"),
+        (
+            {"maps": ("Town01", "AnnotationColorLandscape")},
+            ValueError,
+            "'AnnotationColorLandscape' is not a CARLA town",
+        ),
+        ({"maps": ("Town12",)}, ValueError, "'Town12' is one of CARLA's large maps"),
+        ({"maps": ("/Game/Carla/Maps/Town01",)}, ValueError, r"is a path: give the map's name \('Town01'\)"),
         ({"fixed_delta_seconds": 0.2}, ValueError, "fixed_delta_seconds"),
         ({"fixed_delta_seconds": 0.0}, ValueError, "fixed_delta_seconds"),
         ({"settle_ticks": 0}, ValueError, "settle_ticks"),
@@ -394,23 +435,30 @@ def test_arguments_are_validated_eagerly(kwargs: dict, error: type[Exception], w
 
 
 def test_from_config_carries_every_setting() -> None:
+    from components.core.config import PROJECT_ROOT, load_params
+
+    # the other backends' sections as params.yaml has them
+    others = dict(load_params(PROJECT_ROOT / "params.yaml").simulator)
     cfg = SimulatorConfig(
-        backend="carla",
-        height=96,
-        width=160,
-        render_sizes=None,
-        carla=CarlaConfig(
-            host="10.0.0.7",
-            port=3000,
-            timeout_s=4.0,
-            maps=("Town03", "Town01"),
-            fixed_delta_seconds=0.1,
-            settle_ticks=7,
-            traffic_manager_port=8123,
-            max_vehicles=4,
-            max_pedestrians=2,
-            fov=75.0,
-        ),
+        **others
+        | dict(
+            backend="carla",
+            height=96,
+            width=160,
+            render_sizes=None,
+            carla=CarlaConfig(
+                host="10.0.0.7",
+                port=3000,
+                timeout_s=4.0,
+                maps=("Town03", "Town01"),
+                fixed_delta_seconds=0.1,
+                settle_ticks=7,
+                traffic_manager_port=8123,
+                max_vehicles=4,
+                max_pedestrians=2,
+                fov=75.0,
+            ),
+        )
     )
     sim = CarlaSimulator.from_config(cfg)
     assert (sim.height, sim.width, sim.host, sim.port) == (96, 160, "10.0.0.7", 3000)
@@ -418,6 +466,55 @@ def test_from_config_carries_every_setting() -> None:
     assert (sim.traffic_manager_port, sim.max_vehicles, sim.max_pedestrians) == (8123, 4, 2)
     assert sim.maps == ("Town01", "Town03")
     assert sim.fov == 75.0
+
+
+def test_the_default_towns_are_params_yaml_default() -> None:
+    from components.core.config import PROJECT_ROOT, load_params
+
+    assert load_params(PROJECT_ROOT / "params.yaml").simulator.carla.maps == TOWNS
+    assert CarlaSimulator(port=_free_port()).maps == TOWNS
+
+
+@pytest.mark.parametrize(
+    ("name", "town"),
+    [("Town01", True), ("Town10HD", True), ("Town10HD_Opt", True), ("Town07_Opt", True), ("Town10", True)]
+    + [("Town12", False), ("Town13", False), ("Town15", False), ("Town11", False)]
+    + [("AnnotationColorLandscape", False), ("town01", False), ("Town", False), ("Town01HD_x", False)],
+)
+def test_the_town_rule(name: str, town: bool) -> None:
+    """CARLA's town names: Town + digits + optional HD and _Opt; its large maps and other maps are no towns."""
+    assert (CarlaConfig.town_problem(name) is None) == town
+
+
+@pytest.mark.parametrize(
+    ("maps", "message"),
+    [
+        ([], r"simulator\.carla\.maps: empty: list the towns a scene seed draws from \(the default: Town01"),
+        (["Town01", "AnnotationColorLandscape"], r"maps: 'AnnotationColorLandscape' is not a CARLA town"),
+        (["Town13", "Town15"], r"maps: 'Town13' is one of CARLA's large maps.*; 'Town15' is one"),
+        (["Town01", "Town01"], r"maps: each value at most once"),
+    ],
+)
+def test_params_refuse_maps_that_are_no_towns_by_name(maps: list, message: str) -> None:
+    import copy
+
+    import yaml
+
+    from components.core.config import PROJECT_ROOT, ConfigError, parse_params
+
+    params = yaml.safe_load((PROJECT_ROOT / "params.yaml").read_text())
+    edited = copy.deepcopy(params)
+    edited["simulator"]["carla"]["maps"] = maps
+    with pytest.raises(ConfigError, match=message):
+        parse_params(edited, source="params.yaml")
+    edited["simulator"]["carla"]["maps"] = ["Town10HD_Opt", "Town02"]
+    assert parse_params(edited, source="params.yaml").simulator.carla.maps == ("Town10HD_Opt", "Town02")
+
+
+def test_the_installed_client_loads_only_a_different_map_and_returns_nothing() -> None:
+    # what _load_world relies on: the call exists in the pinned client, takes a name and returns None (not a world)
+    doc = carla.Client.load_world_if_different.__doc__
+    assert "load_world_if_different( (Client)arg1, (str)map_name" in doc and "-> None" in doc
 
 
 def test_version_before_connecting_is_the_client_version() -> None:

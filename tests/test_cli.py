@@ -11,14 +11,51 @@ import cv2
 import numpy as np
 import pytest
 
-from components.cli.main import PRESETS, main
-from components.core import weather
+from components.cli.main import main
+from components.core import presets
 
 
-def test_presets_are_valid_weathers():
-    assert PRESETS
-    for name, w in PRESETS.items():
-        weather.complete_weather(w, where=f"preset {name}: ")
+def test_render_takes_carlas_preset_names_and_values(tmp_path):
+    """`--preset ClearNoon` is CARLA's ClearNoon (sun 45°, fog 2 %), at pidc's documented azimuth unless --set."""
+    from components.simulate.procedural import ProceduralSimulator
+
+    out = tmp_path / "noon.png"
+    assert (
+        main(["render", "--preset", "ClearNoon", "--seed", "2", "--height", "48", "--width", "64", "-o", str(out)]) == 0
+    )
+    png = cv2.cvtColor(cv2.imread(str(out), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    carla_noon = {"cloudiness": 5, "fog_density": 2, "precipitation": 0, "sun_altitude_angle": 45}
+    carla_noon |= {"wind_intensity": 10, "precipitation_deposits": 0, "sun_azimuth_angle": presets.PRESET_SUN_AZIMUTH}
+    np.testing.assert_array_equal(png, ProceduralSimulator(48, 64).render(carla_noon, 2))
+    # --set overrides the preset's azimuth (the sun moves in the image)
+    args = ["render", "--preset", "ClearNoon", "--set", "sun_azimuth_angle=180", "--seed", "2"]
+    assert main([*args, "--height", "48", "--width", "64", "-o", str(out)]) == 0
+    moved = cv2.cvtColor(cv2.imread(str(out), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    np.testing.assert_array_equal(moved, ProceduralSimulator(48, 64).render(carla_noon | {"sun_azimuth_angle": 180}, 2))
+    assert not np.array_equal(moved, png)
+
+
+@pytest.mark.parametrize(
+    "name, reason",
+    [
+        ("ClearNight", "fog_distance 75 vs pidc's fixed 0.75, fog_falloff 1 vs pidc's fixed 0.1"),
+        ("HardRainNight", "wetness 100 vs pidc's fixed 0"),
+        ("DustStorm", r"dust_storm 100 vs 0 \(pidc does not model it\)"),
+    ],
+)
+def test_a_refused_preset_is_one_line_naming_the_parameter(name, reason, capsys, tmp_path):
+    assert main(["render", "--preset", name, "--seed", "1", "-o", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert re.search(rf"^pidc render: error: --preset {name}: {reason} ", err), err
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_pidc_own_preset_names_are_gone(capsys, tmp_path):
+    with pytest.raises(SystemExit) as info:
+        main(["render", "--preset", "clear_noon", "--seed", "1", "-o", str(tmp_path / "x.png")])
+    assert info.value.code == 2
+    assert "invalid choice: 'clear_noon'" in capsys.readouterr().err
 
 
 def test_render_writes_the_simulators_image(tmp_path):
@@ -28,7 +65,7 @@ def test_render_writes_the_simulators_image(tmp_path):
             [
                 "render",
                 "--preset",
-                "foggy_morning",
+                "CloudySunset",
                 "--set",
                 "fog_density=70",
                 "--seed",
@@ -46,7 +83,7 @@ def test_render_writes_the_simulators_image(tmp_path):
     png = cv2.cvtColor(cv2.imread(str(out), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     from components.simulate.procedural import ProceduralSimulator
 
-    expected = ProceduralSimulator(48, 64).render(PRESETS["foggy_morning"] | {"fog_density": 70}, 3)
+    expected = ProceduralSimulator(48, 64).render(presets.preset_weather("CloudySunset") | {"fog_density": 70}, 3)
     np.testing.assert_array_equal(png, expected)
 
 
@@ -58,24 +95,24 @@ def test_render_defaults_to_the_default_profiles_image_size(tmp_path):
 
     sim = load_params(Path(__file__).resolve().parents[1] / "params.yaml").simulator
     out = tmp_path / "noon.png"
-    assert main(["render", "--preset", "clear_noon", "--seed", "1", "-o", str(out)]) == 0
+    assert main(["render", "--preset", "ClearNoon", "--seed", "1", "-o", str(out)]) == 0
     assert cv2.imread(str(out), cv2.IMREAD_COLOR).shape == (sim.height, sim.width, 3)
 
 
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["render", "--preset", "clear_noon"], "--seed is required"),
-        (["render", "--preset", "clear_noon", "--seed", "-2"], "--seed must be a non-negative integer"),
+        (["render", "--preset", "ClearNoon"], "--seed is required"),
+        (["render", "--preset", "ClearNoon", "--seed", "-2"], "--seed must be a non-negative integer"),
         (
-            ["render", "--preset", "clear_noon", "--seed", "1", "--set", "fog_density=140"],
+            ["render", "--preset", "ClearNoon", "--seed", "1", "--set", "fog_density=140"],
             r"'fog_density' = 140 is outside its range \[0, 100\] %",
         ),
         (["render", "--seed", "1", "--set", "fog_density=10"], "weather is missing 'cloudiness'"),
-        (["render", "--preset", "clear_noon", "--seed", "1", "--set", "fog=10"], "unknown weather parameter 'fog'"),
-        (["render", "--preset", "clear_noon", "--seed", "1", "--set", "fog_density"], "--set expects NAME=VALUE"),
+        (["render", "--preset", "ClearNoon", "--seed", "1", "--set", "fog=10"], "unknown weather parameter 'fog'"),
+        (["render", "--preset", "ClearNoon", "--seed", "1", "--set", "fog_density"], "--set expects NAME=VALUE"),
         (
-            ["render", "--preset", "clear_noon", "--seed", "1", "--height", "0"],
+            ["render", "--preset", "ClearNoon", "--seed", "1", "--height", "0"],
             "--height and --width must be within 16..2048",
         ),
     ],
@@ -95,7 +132,15 @@ def test_console_script_lists_weather():
         [sys.executable, "-m", "components.cli.main", "weather"], capture_output=True, text=True, timeout=60
     )
     assert r.returncode == 0
-    assert "sun_altitude_angle" in r.stdout and "[-90, 90] deg" in r.stdout and "clear_noon" in r.stdout
+    assert "sun_altitude_angle" in r.stdout and "[-90, 90] deg" in r.stdout
+    # the usable presets with CARLA's values (cloud, fog, rain, sun, wind, deposit, then pidc's azimuth)
+    rows = {line.split()[0]: line.split()[1:] for line in r.stdout.splitlines() if line.split()[:1] == ["HardRainNoon"]}
+    assert rows["HardRainNoon"] == ["100", "7", "100", "45", "100", "90", "0"]
+    assert all(re.search(rf"^{n} +[0-9]", r.stdout, re.M) for n in presets.USABLE)
+    # the refused ones with the parameter that differs
+    assert "  ClearNight: fog_distance 75 vs pidc's fixed 0.75, fog_falloff 1 vs pidc's fixed 0.1\n" in r.stdout
+    assert "  DustStorm: dust_storm 100 vs 0 (pidc does not model it)\n" in r.stdout
+    assert not re.search(r"^ClearNight +[0-9]", r.stdout, re.M)
 
 
 @pytest.mark.parametrize(
@@ -112,7 +157,7 @@ def test_console_script_lists_weather():
     ],
 )
 def test_render_sizes_outside_the_renderers_bounds(size, message, capsys, tmp_path):
-    assert main(["render", "--preset", "clear_noon", "--seed", "1", *size, "-o", str(tmp_path / "x.png")]) == 2
+    assert main(["render", "--preset", "ClearNoon", "--seed", "1", *size, "-o", str(tmp_path / "x.png")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and re.search(message, err), err
     assert list(tmp_path.iterdir()) == []
@@ -130,7 +175,7 @@ def test_render_sizes_outside_the_renderers_bounds(size, message, capsys, tmp_pa
 def test_render_output_that_cannot_be_a_png_file(name, message, capsys, tmp_path):
     (tmp_path / "a.png").write_bytes(b"")
     (tmp_path / "isdir.png").mkdir()
-    assert main(["render", "--preset", "clear_noon", "--seed", "1", "-o", str(tmp_path / name)]) == 2
+    assert main(["render", "--preset", "ClearNoon", "--seed", "1", "-o", str(tmp_path / name)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith("pidc render: error: ") and re.search(message, err), err
     assert (
@@ -158,14 +203,14 @@ def test_a_failed_write_names_the_users_file_not_a_temporary_one(capsys, tmp_pat
         raise IsADirectoryError(21, "Is a directory", str(tmp_path / ".r.png.1fa1588e.tmp"), None, str(target))
 
     monkeypatch.setattr(sheet, "save_png", fail)
-    assert main(["render", "--preset", "clear_noon", "--seed", "1", "-o", str(target)]) == 2
+    assert main(["render", "--preset", "ClearNoon", "--seed", "1", "-o", str(target)]) == 2
     assert capsys.readouterr().err.strip() == f"pidc render: error: -o {target}: cannot write there (Is a directory)"
 
     def fail_temporary(path, image):  # the temporary file alone (os.open of it failed)
         raise FileNotFoundError(2, "No such file or directory", str(tmp_path / ".r.png.1fa1588e.tmp"))
 
     monkeypatch.setattr(sheet, "save_png", fail_temporary)
-    assert main(["render", "--preset", "clear_noon", "--seed", "1", "-o", str(target)]) == 2
+    assert main(["render", "--preset", "ClearNoon", "--seed", "1", "-o", str(target)]) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"pidc render: error: -o {target}: cannot write there (No such file or directory)"
 
@@ -200,7 +245,7 @@ def test_render_removes_the_temporary_file_a_killed_render_left(tmp_path):
     out, stale, other = tmp_path / "r.png", tmp_path / ".r.png.1fa1588e.tmp", tmp_path / ".r.png.notes"
     stale.write_bytes(b"half a png")
     other.write_bytes(b"the user's")
-    args = ["render", "--preset", "clear_noon", "--seed", "1", "--height", "48", "--width", "64", "-o", str(out)]
+    args = ["render", "--preset", "ClearNoon", "--seed", "1", "--height", "48", "--width", "64", "-o", str(out)]
     assert main(args) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, other.name])
 

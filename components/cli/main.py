@@ -13,66 +13,8 @@ from pathlib import Path
 
 from components.cli.errors import CLIError
 from components.cli.outputs import check_output, memory_error_line, os_error_line
-from components.core import weather
+from components.core import presets, weather
 from components.core.images import RENDER_SIDES
-
-#: Named starting weathers for ``pidc render --preset`` (pidc's own, in the spirit of CARLA's presets).
-PRESETS: dict[str, dict[str, float]] = {
-    "clear_noon": dict(
-        cloudiness=5,
-        fog_density=0,
-        precipitation=0,
-        sun_altitude_angle=60,
-        wind_intensity=10,
-        precipitation_deposits=0,
-        sun_azimuth_angle=120,
-    ),
-    "cloudy_noon": dict(
-        cloudiness=85,
-        fog_density=2,
-        precipitation=0,
-        sun_altitude_angle=55,
-        wind_intensity=20,
-        precipitation_deposits=0,
-        sun_azimuth_angle=120,
-    ),
-    "foggy_morning": dict(
-        cloudiness=30,
-        fog_density=60,
-        precipitation=0,
-        sun_altitude_angle=12,
-        wind_intensity=5,
-        precipitation_deposits=0,
-        sun_azimuth_angle=80,
-    ),
-    "hard_rain_noon": dict(
-        cloudiness=100,
-        fog_density=7,
-        precipitation=100,
-        sun_altitude_angle=45,
-        wind_intensity=100,
-        precipitation_deposits=90,
-        sun_azimuth_angle=120,
-    ),
-    "wet_sunset": dict(
-        cloudiness=20,
-        fog_density=5,
-        precipitation=0,
-        sun_altitude_angle=4,
-        wind_intensity=10,
-        precipitation_deposits=70,
-        sun_azimuth_angle=250,
-    ),
-    "clear_night": dict(
-        cloudiness=10,
-        fog_density=3,
-        precipitation=0,
-        sun_altitude_angle=-40,
-        wind_intensity=10,
-        precipitation_deposits=30,
-        sun_azimuth_angle=0,
-    ),
-}
 
 
 def _parse_assignments(items: Sequence[str]) -> dict[str, float]:
@@ -93,12 +35,32 @@ def _cmd_weather(args: argparse.Namespace) -> int:
     for p in weather.PARAMETERS.values():
         rng = f"{p.fixed:g}" if p.role == "fixed" else p.describe_range()
         print(f"{p.name:<28}{p.role:<11}{rng:<22}{p.short}")
-    print("\npresets for `pidc render --preset`: " + ", ".join(PRESETS))
+    _print_presets()
     return 0
 
 
+def _print_presets() -> None:
+    """CARLA's presets: the usable ones with their values, the refused ones with the field that differs."""
+    print(
+        f"\nCARLA {presets.CARLA_VERSION}'s presets for `pidc render --preset`, as CARLA sets them; CARLA leaves the sun "
+        f"azimuth\nunchanged, pidc renders it at {presets.PRESET_SUN_AZIMUTH:g} deg (--set sun_azimuth_angle=A for another):"
+    )
+    print(f"{'preset':<18}" + "".join(f"{s:>9}" for s in (*weather.SHORT_NAMES, "azimuth")))
+    for name in presets.USABLE:
+        w = presets.preset_weather(name)
+        print(f"{name:<18}" + "".join(f"{w[n]:>9g}" for n in (*weather.PREDICTED, "sun_azimuth_angle")))
+    print("\nrefused (a parameter pidc holds fixed, or does not model, differs):")
+    for reason in presets.REFUSED.values():
+        print(f"  {reason}")
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
-    w = dict(PRESETS[args.preset]) if args.preset else {}
+    w: dict[str, float] = {}
+    if args.preset:
+        try:
+            w = presets.preset_weather(args.preset)
+        except ValueError as e:
+            raise CLIError(f"--preset {e} (`pidc weather` lists the presets pidc renders)") from None
     w.update(_parse_assignments(args.set or []))
     if args.seed is None:
         raise CLIError("--seed is required: it picks the scene (map, camera, traffic); e.g. --seed 0")
@@ -164,7 +126,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_weather)
 
     p = sub.add_parser("render", help="render one image of a scene under a weather (embedded simulator)")
-    p.add_argument("--preset", choices=sorted(PRESETS), help="a starting weather (then --set overrides)")
+    p.add_argument(
+        "--preset",
+        choices=presets.PRESETS,
+        metavar="NAME",
+        help="one of CARLA's presets, e.g. ClearNoon (`pidc weather` lists them); then --set overrides",
+    )
     p.add_argument(
         "--set", action="append", metavar="NAME=VALUE", help="a weather parameter, e.g. --set fog_density=40"
     )
@@ -204,6 +171,9 @@ def build_parser() -> argparse.ArgumentParser:
     from components.cli.models import add_model_commands
 
     add_model_commands(sub)
+    from components.cli.record import add_record_command
+
+    add_record_command(sub)
     return parser
 
 

@@ -81,7 +81,7 @@ NonNegativeInt = Annotated[StrictInt, Field(ge=0)]
 
 
 #: the backbones of ``components.features.backbones`` (``available()``; tests/test_config.py keeps the two equal)
-BackboneName = Literal["cues", "tiny", "cnn", "resnet50", "dinov2", "clip"]
+BackboneName = Literal["cues", "tiny", "cnn", "efficientnet_lite0", "resnet50", "dinov2", "clip"]
 
 
 def _each_once(v: tuple) -> tuple:
@@ -100,8 +100,40 @@ class CarlaConfig(_Section):
     """the CARLA server's RPC port"""
     timeout_s: Annotated[Real, Field(gt=0)]
     """seconds the client waits for the server to answer before it fails"""
-    maps: tuple[str, ...]
-    """maps drawn from by the scene seed; empty = every map the server offers"""
+    maps: Annotated[tuple[str, ...], AfterValidator(_each_once)]
+    """the towns a scene seed draws from, by name (uniformly); each must be on the server. A town is ``Town`` +
+    digits with an optional ``HD`` and ``_Opt`` (the layered variant): Town01 … Town07, Town10HD, Town10HD_Opt. Other
+    maps are refused by name: CARLA's non-town maps (no vehicle spawns there, e.g. AnnotationColorLandscape) and its
+    large maps Town11, Town12, Town13 and Town15 (streamed tiles, no pedestrian navigation). Town06 and Town07 come
+    with CARLA's AdditionalMaps package"""
+
+    @field_validator("maps")
+    @classmethod
+    def _towns(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        if not v:
+            raise ValueError("empty: list the towns a scene seed draws from (the default: Town01 … Town07, Town10HD)")
+        bad = [f"{name!r} {problem}" for name in v if (problem := CarlaConfig.town_problem(name))]
+        if bad:
+            raise ValueError("; ".join(bad))
+        return v
+
+    @staticmethod
+    def town_problem(name: object) -> str | None:
+        """Why ``name`` is no town the CARLA backend draws from (a phrase), or ``None`` for a town such as Town10HD."""
+        import re
+
+        match = re.fullmatch(r"Town(\d+)(HD)?(_Opt)?", name) if isinstance(name, str) else None
+        if match is None and isinstance(name, str) and "/" in name:
+            return f"is a path: give the map's name ({name.rstrip('/').rsplit('/', 1)[-1]!r})"
+        if match is None:
+            return (
+                "is not a CARLA town (Town + digits, optional HD and _Opt: Town01 … Town07, Town10HD, Town10HD_Opt); "
+                "no vehicle spawns on CARLA's other maps"
+            )
+        if int(match.group(1)) in (11, 12, 13, 15):
+            return "is one of CARLA's large maps (streamed tiles, no pedestrian navigation), which pidc does not use"
+        return None
+
     fixed_delta_seconds: Annotated[Real, Field(gt=0, le=0.1)]
     """simulated seconds per tick: the world runs in synchronous mode, one tick per step of the client"""
     settle_ticks: PositiveInt
@@ -117,12 +149,46 @@ class CarlaConfig(_Section):
     """horizontal field of view of the RGB camera, degrees"""
 
 
+class RecordedConfig(_Section):
+    """Recorded datasets (``simulator.backend: recorded``): folders of images with a labels file, imported by the
+    generate stage into the same shards and manifest as rendered data (docs/simulators.md, "Recorded datasets")."""
+
+    folders: tuple[Annotated[str, Field(min_length=1)], ...]
+    """the recorded folders, relative to the project unless absolute, each holding its images and the labels file
+    (columns ``image`` and the six predicted parameters; optional ``sun_azimuth_angle``, fixed ones, ``sequence``,
+    ``split``; written by ``pidc record``). DVC cannot list them as deps of the generate stage: after changing a
+    folder's files, run ``dvc repro -f generate`` (the stage re-imports only the splits whose files changed)"""
+    labels: Annotated[str, Field(min_length=1)]
+    """the labels file's name in each folder: a ``.csv`` or ``.parquet`` file"""
+    renderer: Literal["procedural", "carla"] | None
+    """the simulator that renders Task II's bag (fresh scenes of a known weather distribution) beside recorded data:
+    ``procedural``, ``carla`` (``simulator.carla``) or null (none at hand: Task II is skipped and its report says
+    why). Task I's posterior predictive checks are skipped with recorded data whatever it is: no simulator
+    re-renders a recorded scene"""
+
+    @field_validator("folders")
+    @classmethod
+    def _folders(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        for folder in v:
+            if folder != folder.strip():
+                raise ValueError(f"a folder path without surrounding spaces, got {folder!r}")
+        return _each_once(v)
+
+    @field_validator("labels")
+    @classmethod
+    def _labels(cls, v: str) -> str:
+        if "/" in v or "\\" in v or not v.lower().endswith((".csv", ".parquet")):
+            raise ValueError(f"a file name ending in .csv or .parquet (no folder), got {v!r}")
+        return v
+
+
 class SimulatorConfig(_Section):
     """Which simulator renders the data, and at what resolution (pixels)."""
 
-    backend: Literal["procedural", "carla"]
-    """the renderer: ``procedural`` (embedded in pidc, no server) or ``carla`` (a running CARLA server,
-    ``simulator.carla``)"""
+    backend: Literal["procedural", "carla", "recorded"]
+    """the renderer: ``procedural`` (embedded in pidc, no server), ``carla`` (a running CARLA server,
+    ``simulator.carla``), or ``recorded`` (no renderer: the folders of ``simulator.recorded`` are imported,
+    their images area-resized to ``height × width``)"""
     height: Annotated[StrictInt, Field(ge=RENDER_SIDES[0], le=RENDER_SIDES[1])]
     """the images' height in pixels, within the renderer's range (``images.RENDER_SIDES``: 16..2048)"""
     width: Annotated[StrictInt, Field(ge=RENDER_SIDES[0], le=RENDER_SIDES[1])]
@@ -134,6 +200,17 @@ class SimulatorConfig(_Section):
     (study: docs/studies/camera-renders.md)"""
     carla: CarlaConfig
     """the CARLA backend's connection and scenes (read only with ``backend: carla``)"""
+    recorded: RecordedConfig
+    """the recorded folders (read only with ``backend: recorded``)"""
+
+    @model_validator(mode="after")
+    def _recorded_folders(self) -> SimulatorConfig:
+        if self.backend == "recorded" and not self.recorded.folders:
+            raise ValueError(
+                "recorded.folders is empty but backend is recorded: name the folders of recorded images to import "
+                "(simulator.recorded.folders, relative to the project)"
+            )
+        return self
 
     @model_validator(mode="after")
     def _render_sizes(self) -> SimulatorConfig:

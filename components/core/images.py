@@ -8,8 +8,9 @@ reason. :func:`list_images` expands folders (image extensions only, natural sort
 ``frame_10``), :func:`iter_images` reads a list and keeps going past bad files, and :func:`group_by_size` stacks
 images of equal size into the ``(n, H, W, 3)`` batches a backbone takes (it resizes each batch to its input size).
 
-Used by the ``pidc`` CLI (``characterize``, ``domain``, ``relate``) and the scheduled monitoring's recorded images
-(:mod:`components.monitor.recorded`); no DVC stage reads users' images. :func:`render_shape` (the shape of a render
+Used by the ``pidc`` CLI (``characterize``, ``domain``, ``relate``), the scheduled monitoring's recorded images
+(:mod:`components.monitor.recorded`) and the ``generate`` stage's import of recorded folders
+(:mod:`components.simulate.recorded`); no other DVC stage reads users' images. :func:`render_shape` (the shape of a render
 of another height) serves the resized renders (:mod:`components.simulate.resized`) and the model cards that name them.
 """
 

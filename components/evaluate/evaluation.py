@@ -46,7 +46,7 @@ def evaluate_exported(
 
     Returns:
         The JSON-serializable result: ``model``, ``metrics`` (headline metrics, with ``images``, ``samples`` and
-        ``ppc_score``), ``coverage`` and ``pi`` (lists of floats), ``parameters`` and ``profiles`` (nested dicts).
+        ``ppc_score`` and ``ppc_images``, the images checked: 0 with recorded data), ``coverage`` and ``pi`` (lists of floats), ``parameters`` and ``profiles`` (nested dicts).
     """
     ev = params.evaluate
     start, cpu = time.perf_counter(), time.thread_time()  # one onnxruntime thread: the calling one
@@ -72,6 +72,7 @@ def evaluate_exported(
     scored = time.perf_counter()
 
     metrics["ppc_score"] = _posterior_predictive(params, test, n, samples, model_id, plot_dir)
+    metrics["ppc_images"] = 0 if params.simulator.backend == "recorded" else min(ev.ppc_images, n)
     plots.save_figure(
         plots.truth_profile_plot(profiles, title=f"{model_id}: Task I across the true value ({n} test images)"),
         plot_dir / "profile.png",
@@ -115,9 +116,13 @@ def _posterior_predictive(
         plot_dir: the folder of ``ppc.png``.
 
     Returns:
-        The median PPC score over the checked images, NaN when none is checked.
+        The median PPC score over the checked images, NaN when none is checked: always with recorded data
+        (``simulator.backend: recorded``), whose scenes no simulator can render again (``ppc_images`` 0 in the
+        metrics).
     """
     ev = params.evaluate
+    if params.simulator.backend == "recorded":
+        return float("nan")
     n_ppc = min(ev.ppc_images, n)
     ppc_images = test.images(stop=n_ppc)
     checks = task1.posterior_predictive_checks(

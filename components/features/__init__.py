@@ -1,7 +1,8 @@
 """features — the ``features@<backbone>`` stage: image backbones and the per-shard cache of their output.
 
 - :mod:`~components.features.backbones`: ``get_backbone(name, **options)``, ``available()``, the ``Backbone``
-  interface; embedded (cues, tiny, cnn) and pretrained (resnet50, dinov2, clip) backbones.
+  interface; embedded (cues, tiny, cnn), packaged (efficientnet_lite0) and pretrained (resnet50, dinov2, clip)
+  backbones.
 - :mod:`~components.features.cache`: ``FeatureStore``, ``backbone_output``, ``open_features``,
   ``inputs_from_cached`` (cached output → the posterior's input ``x``), ``posterior_inputs`` (images → ``x``).
 - :mod:`~components.features.options`: ``backbone_options(name, params, root)``.

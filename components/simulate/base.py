@@ -10,7 +10,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["Simulator", "make_simulator"]
+__all__ = ["Simulator", "make_simulator", "new_scene_simulator"]
 
 
 @runtime_checkable
@@ -48,4 +48,20 @@ def make_simulator(config) -> Simulator:
         from components.simulate.carla import CarlaSimulator
 
         return CarlaSimulator.from_config(config)
+    if config.backend == "recorded":
+        raise ValueError(
+            "simulator.backend is recorded: no simulator renders recorded scenes (Task II's bag is rendered by "
+            "simulator.recorded.renderer; the scheduled monitoring judges a recorded folder, monitor.source)"
+        )
     raise ValueError(f"unknown simulator backend {config.backend!r}; known: procedural, carla")
+
+
+def new_scene_simulator(config) -> Simulator | None:
+    """The simulator of images in new scenes (Task II's bag): the backend's (:func:`make_simulator`), or with
+    ``backend: recorded`` the one ``simulator.recorded.renderer`` names, rendering at ``height × width`` (None when it
+    names none)."""
+    if config.backend != "recorded":
+        return make_simulator(config)
+    if config.recorded.renderer is None:
+        return None
+    return make_simulator(config.model_copy(update={"backend": config.recorded.renderer}))

@@ -10,6 +10,10 @@ off, walker controllers stopped, traffic lights frozen), so posterior predictive
 scene under other weathers. CARLA's clouds and rain particles keep animating, so re-renders are close but
 never byte-identical (treat it as simulator noise).
 
+The map of a scene is one of the configured towns (:data:`TOWNS` by default; a non-town map, where no vehicle can
+spawn, is refused by name), loaded with ``client.load_world_if_different`` so that a scene on the town already loaded
+costs no reload.
+
 Each weather is applied with :func:`weather_parameters` (all 13 fields by keyword), then the world is
 ticked ``settle_ticks`` times in synchronous mode (auto-exposure adapts over frames) and the camera image
 whose frame id matches the last tick is returned.
@@ -46,6 +50,7 @@ if TYPE_CHECKING:
     from components.core.config import SimulatorConfig
 
 __all__ = [
+    "TOWNS",
     "CarlaConnectionError",
     "CarlaSimulator",
     "ScenePlan",
@@ -60,6 +65,9 @@ __all__ = [
     "weather_parameters",
 ]
 
+#: The towns a scene seed draws from by default: CARLA 0.9.16's standard towns (``params.yaml``'s
+#: ``simulator.carla.maps`` holds the same list; Town06 and Town07 come with CARLA's AdditionalMaps package).
+TOWNS: tuple[str, ...] = ("Town01", "Town02", "Town03", "Town04", "Town05", "Town06", "Town07", "Town10HD")
 #: Simulated seconds the traffic runs (autopilot, walkers) before the scene is frozen.
 WARMUP_SECONDS = 2.0
 #: Client timeout (s) while the server loads a map; loading a town takes tens of seconds.
@@ -164,7 +172,7 @@ def choose_map(scene_seed: int, maps: Iterable[str]) -> str:
     seed = _check_scene_seed(scene_seed)
     candidates = _names("maps", maps)
     if not candidates:
-        raise ValueError("no map to choose from: `maps` is empty (set simulator.carla.maps or check the server)")
+        raise ValueError("no map to choose from: `maps` is empty (set simulator.carla.maps)")
     return candidates[int(seeding.rng(seed, "carla", "map").integers(len(candidates)))]
 
 
@@ -382,7 +390,9 @@ class CarlaSimulator:
         host: the server's RPC host.
         port: the server's RPC port (the streaming port is ``port + 1``).
         timeout_s: client timeout (s): connecting, ticking and waiting for camera images.
-        maps: maps the scene seed draws from; empty = every map the server offers.
+        maps: the towns the scene seed draws from, by name (default :data:`TOWNS`); a name that is no town
+            (:meth:`components.core.config.CarlaConfig.town_problem`: not ``Town`` + digits + optional ``HD`` and
+            ``_Opt``, or one of CARLA's large maps), an empty list or a repeated name is a ``ValueError``.
         fixed_delta_seconds: simulated seconds per tick in synchronous mode, in (0, 0.1].
         settle_ticks: ticks between setting a weather and capturing (auto-exposure adapts over frames).
         traffic_manager_port: port of the traffic manager that drives the NPC vehicles.
@@ -402,7 +412,7 @@ class CarlaSimulator:
         host: str = "127.0.0.1",
         port: int = 2000,
         timeout_s: float = 10.0,
-        maps: Sequence[str] = (),
+        maps: Sequence[str] = TOWNS,
         fixed_delta_seconds: float = 0.05,
         settle_ticks: int = 10,
         traffic_manager_port: int = 8000,
@@ -424,6 +434,13 @@ class CarlaSimulator:
         self.maps: tuple[str, ...] = tuple(_names("maps", given))
         if len(self.maps) != len(given):
             raise ValueError(f"maps has duplicates: {list(given)}")
+        if not self.maps:
+            raise ValueError(f"maps is empty: name the towns a scene seed draws from, e.g. {', '.join(TOWNS)}")
+        from components.core.config import CarlaConfig  # the town rule has one home, beside the setting
+
+        bad = [f"{m!r} {problem}" for m in self.maps if (problem := CarlaConfig.town_problem(m))]
+        if bad:
+            raise ValueError(f"maps: {'; '.join(bad)}")
         # CARLA warns that steps above 0.1 s break physics substepping
         self.fixed_delta_seconds = _float_arg(
             "fixed_delta_seconds", fixed_delta_seconds, 0.0, 0.1, low_open=True, high_open=False
@@ -444,7 +461,6 @@ class CarlaSimulator:
         self._client: Any = None
         self._server_version: str | None = None
         self._client_version: str | None = None
-        self._map_paths: dict[str, str] = {}
         self._scene: _Scene | None = None
 
     @classmethod
@@ -534,44 +550,44 @@ class CarlaSimulator:
                 f"CARLA client {client_version} and server {server_version} at {where} differ; {_INSTALL_HINT}",
                 stacklevel=2,
             )
-        self._map_paths = self._resolve_maps(sorted(available))
+        self._check_maps(available)
         self._client, self._server_version, self._client_version = client, server_version, client_version
 
-    def _resolve_maps(self, available: list[str]) -> dict[str, str]:
-        """Candidate name → the path ``load_world`` takes; configured names match a path or its last part."""
-        if not self.maps:
-            if not available:
-                raise RuntimeError(f"the CARLA server at {self.host}:{self.port} offers no maps")
-            return {path: path for path in available}
-        by_name: dict[str, str] = {}
-        for path in available:
-            by_name.setdefault(path, path)
-            by_name.setdefault(path.rsplit("/", 1)[-1], path)
-        unknown = [m for m in self.maps if m not in by_name]
-        if unknown:
-            offered = ", ".join(sorted({p.rsplit("/", 1)[-1] for p in available}))
+    def _check_maps(self, available: Iterable[str]) -> None:
+        """Every configured town is on the server (``get_available_maps`` lists paths; a town is its last part)."""
+        offered = {path.rstrip("/").rsplit("/", 1)[-1] for path in available}
+        missing = [m for m in self.maps if m not in offered]
+        if missing:
+            from components.core.config import CarlaConfig
+
+            towns = sorted(n for n in offered if CarlaConfig.town_problem(n) is None)
+            extra = {"Town06", "Town07"} & set(missing)
+            hint = f" ({' and '.join(sorted(extra))} come with CARLA's AdditionalMaps package)" if extra else ""
             raise ValueError(
-                f"simulator.carla.maps: {unknown} not on the server at {self.host}:{self.port}; it offers {offered}"
+                f"simulator.carla.maps: {', '.join(missing)} not on the server at {self.host}:{self.port}, whose "
+                f"towns are {', '.join(towns) or 'none'}{hint}: list only the towns the server has"
             )
-        return {m: by_name[m] for m in self.maps}
 
     # -- scene ---------------------------------------------------------------------------------------
 
-    def _load_world(self, path: str) -> Any:
-        """The world with map ``path``, loaded unless it is already the current map."""
-        world = self._client.get_world()
-        if world.get_map().name.rsplit("/", 1)[-1] == path.rsplit("/", 1)[-1]:
-            return world
+    def _load_world(self, town: str) -> Any:
+        """The world with map ``town``, loaded by the server only where another map is loaded.
+
+        ``client.load_world_if_different(name)`` compares ``name`` and ``"Carla/Maps/" + name`` with the current map's
+        name (``Carla/Maps/Town01``) and returns ``None`` either way, so it takes the town's name, never the server's
+        path (``/Game/Carla/Maps/Town01`` would never match and reload every scene), and the world is read after it.
+        """
         self._client.set_timeout(max(self.timeout_s, LOAD_WORLD_TIMEOUT_S))
         try:
-            return self._client.load_world(path)
+            self._client.load_world_if_different(town)
+            return self._client.get_world()
         finally:
             self._client.set_timeout(self.timeout_s)
 
     def _build_scene(self, seed: int) -> None:
         carla = self._carla
-        map_name = choose_map(seed, self._map_paths)
-        world = self._load_world(self._map_paths[map_name])
+        map_name = choose_map(seed, self.maps)
+        world = self._load_world(map_name)
         scene = _Scene(plan=None, world=world)
         self._scene = scene  # from here on, a failure tears down whatever was spawned
 
@@ -590,7 +606,7 @@ class CarlaSimulator:
         spawn_points = world.get_map().get_spawn_points()
         plan = plan_scene(
             seed,
-            self._map_paths,
+            self.maps,
             [bp.id for bp in four_wheeled],
             walkers,
             len(spawn_points),

@@ -5,6 +5,8 @@ seed. Each row starts with a label panel naming the parameter (``cv2.putText``) 
 captioned with the swept value, so a person can check at a glance that fog, rain, puddles, night,
 cloud cover and low sun look like what they are.
 
+With recorded data (no simulator to sweep), :func:`recorded_sheet` picks recorded images along each parameter instead.
+
 Used by the ``generate`` stage and the ``pidc`` CLI (``render`` writes its PNG).
 """
 
@@ -22,7 +24,7 @@ from components.core.weather import PARAMETERS, PREDICTED
 
 from .base import Simulator
 
-__all__ = ["BASE_WEATHER", "contact_sheet", "save_png"]
+__all__ = ["BASE_WEATHER", "contact_sheet", "recorded_sheet", "save_png"]
 
 #: a pleasant day: some clouds, no fog or rain, sun at 45°, mild wind, dry road
 BASE_WEATHER: dict[str, float] = {
@@ -88,6 +90,35 @@ def contact_sheet(
                 )
                 tiles.append(img)
             rows.append(np.concatenate(tiles, axis=1))
+    return np.concatenate(rows, axis=0)
+
+
+def recorded_sheet(images: np.ndarray, theta: np.ndarray, steps: int) -> np.ndarray:
+    """The contact sheet of recorded images, which no simulator can sweep: one row per predicted parameter, the
+    ``steps`` images (of ``images (n, H, W, 3)`` uint8, true weather ``theta (n, 6)``) whose value of it lies nearest to
+    ``steps`` evenly spaced values from its low to its high end, each captioned with its own value: a look tells whether
+    the labels say what the images show.
+
+    Shape: (6·H, W_label + steps·W, 3)."""
+    whole_number("contact sheet steps", steps, low=2)
+    images, theta = np.asarray(images), np.asarray(theta, dtype=np.float64)
+    if len(images) == 0 or len(images) != len(theta):
+        raise ValueError(f"a recorded contact sheet needs images and one θ each, got {len(images)} and {len(theta)}")
+    H, W = images.shape[1:3]
+    scale = max(H / 128.0, 0.75)
+    rows = []
+    for k, name in enumerate(PREDICTED):
+        p = PARAMETERS[name]
+        tiles = [_label(f"{p.short} (recorded)", H, int(round(W * 1.1)), scale)]
+        for v in np.linspace(p.low, p.high, steps):
+            i = int(np.argmin(np.abs(theta[:, k] - v)))
+            img = np.array(images[i], copy=True, order="C")
+            for colour, thickness in (((0, 0, 0), 2), ((255, 255, 255), 1)):
+                cv2.putText(
+                    img, f"{theta[i, k]:.0f}", (3, H - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.35 * scale, colour, thickness
+                )
+            tiles.append(img)
+        rows.append(np.concatenate(tiles, axis=1))
     return np.concatenate(rows, axis=0)
 
 

@@ -46,6 +46,7 @@ __all__ = [
     "DatasetError",
     "plan_split",
     "render_shard",
+    "write_shard",
     "shard_is_done",
     "write_manifest",
     "Split",
@@ -234,11 +235,27 @@ def render_shard(rows: ShardRows, simulator, root: str | Path) -> dict:
         if img.shape != (h, w, 3) or img.dtype != np.uint8:
             raise DatasetError(f"simulator returned {img.dtype} {img.shape}, expected uint8 {(h, w, 3)}")
         images[j] = img
+    return write_shard(spec, images, rows.weather, rows.scene_seed, rows.scene_id, root)
+
+
+def write_shard(
+    spec: ShardSpec,
+    images: np.ndarray,
+    weather_rows: np.ndarray,
+    scene_seed: np.ndarray,
+    scene_id: np.ndarray,
+    root: str | Path,
+    extra: Mapping[str, object] | None = None,
+) -> dict:
+    """Write shard ``spec`` (``images (k, H, W, 3)`` uint8, ``weather_rows (k, 13)``, ``scene_seed``/``scene_id``
+    ``(k,)``) and then its receipt, each atomically; ``extra`` entries join the receipt (and the manifest's shard
+    entry). Returns the receipt (sha256, count, bytes, plan)."""
+    root = Path(root)
     arrays = {
         "images": images,
-        "weather": rows.weather,
-        "scene_seed": rows.scene_seed,
-        "scene_id": rows.scene_id,
+        "weather": weather_rows,
+        "scene_seed": scene_seed,
+        "scene_id": scene_id,
         "index": np.arange(spec.start, spec.stop, dtype=np.int64),
     }
     data = _npz_bytes(arrays)
@@ -253,6 +270,7 @@ def render_shard(rows: ShardRows, simulator, root: str | Path) -> dict:
         "stop": spec.stop,
         "bytes": len(data),
         "sha256": hashlib.sha256(data).hexdigest(),
+        **(extra or {}),
     }
     atomic_write_bytes(spec.receipt_path(root), json.dumps(receipt, indent=1).encode())
     return receipt
@@ -279,9 +297,12 @@ def write_manifest(
     resolution: tuple[int, int],
     seed: int,
     box: weather.Box,
-    images_per_scene: int,
+    images_per_scene: int | None,
+    source: Mapping[str, object] | None = None,
 ) -> dict:
-    """Write ``manifest.json`` from the receipts of finished shards (all must be done)."""
+    """Write ``manifest.json`` from the receipts of finished shards (all must be done); ``source`` (a recorded
+    dataset's description, :mod:`components.simulate.recorded`) becomes its ``source`` entry, and
+    ``images_per_scene`` is None for recorded data."""
     root = Path(root)
     splits: dict[str, dict] = {}
     content = hashlib.sha256()
@@ -316,6 +337,8 @@ def write_manifest(
         "splits": splits,
         "content_hash": content.hexdigest(),
     }
+    if source is not None:
+        manifest["source"] = dict(source)
     atomic_write_bytes(root / "manifest.json", json.dumps(manifest, indent=1).encode())
     return manifest
 

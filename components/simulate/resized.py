@@ -13,7 +13,8 @@ every stage render so: :func:`components.simulate.base.make_simulator` returns a
 - :class:`ResizedRenders`: the :class:`~components.simulate.base.Simulator` over a procedural renderer per size.
 
 Used through ``make_simulator`` by the ``generate``, ``evaluate`` (PPCs) and ``task2`` stages, the scheduled monitoring
-and :func:`components.simulate.in_memory.render_split`, when ``simulator.render_sizes`` is set.
+and :func:`components.simulate.in_memory.render_split`, when ``simulator.render_sizes`` is set; :func:`area_resize` also
+by the ``generate`` stage's import of recorded images of another size (:mod:`components.simulate.recorded`).
 """
 
 from __future__ import annotations

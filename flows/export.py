@@ -15,7 +15,6 @@ again: a re-run of the stage, or one after a kill, adds only the versions it lac
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from prefect.context import FlowRunContext
 from prefect.task_runners import ProcessPoolTaskRunner
 from tqdm.auto import tqdm
 
+from components.core.hardware import threads_per_worker, usable_cores
 from components.export.onnx import export_posterior
 from components.features.backbones import get_backbone
 from components.posterior.store import load_npe
@@ -128,7 +128,7 @@ def export_all(params_path: str, models: list[str] | None = None) -> dict[str, d
         raise FileNotFoundError(f"no trained model for {', '.join(missing)} in {paths.models} (run `dvc repro train`)")
     if isinstance(FlowRunContext.get().task_runner, ProcessPoolTaskRunner):
         workers = min(params.export.runner.workers, len(ids))
-        threads = max(1, (os.cpu_count() or 1) // workers)
+        threads = threads_per_worker(usable_cores(), workers)
         share_api_with_workers()
         largest_first = sorted(ids, key=lambda m: params.model_cell(m)[1], reverse=True)
         futures = {m: write_onnx.submit(m, params_path, threads) for m in largest_first}

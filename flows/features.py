@@ -2,6 +2,9 @@
 
 ``python -m flows.features --backbone cues [--params params.yaml]``. One Prefect task per
 ``data.shards_per_task`` dataset shards; shards whose cached output matches the current data and backbone are skipped.
+A frozen backbone runs on ``backbones.device`` (each worker process moves its own copy there, the images batch by
+batch, the features back to the CPU); the fingerprint is the device's no part. A trainable backbone's inputs (resized
+images) are cached as they are, on the CPU.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from pathlib import Path
 from prefect import flow, task
 
 from components.core.files import remove_stale_temps
+from components.core.hardware import threads_per_worker, usable_cores
 from components.features import cache as features
 from components.features.backbones import Backbone, get_backbone
 from components.features.options import backbone_options
@@ -28,8 +32,14 @@ from flows.stage import (
 
 
 @functools.lru_cache(maxsize=4)
-def _backbone(name: str, options_json: str) -> Backbone:
-    return get_backbone(name, **json.loads(options_json))
+def _backbone(name: str, options_json: str, device: str = "cpu") -> Backbone:
+    """The backbone ``name`` built with its options, its weights on ``device`` (a resolved ``backbones.device``)."""
+    import torch
+
+    where = torch.device(device)
+    if where.type == "cuda" and where.index is not None:
+        torch.cuda.set_device(where)
+    return get_backbone(name, **json.loads(options_json)).to(where)
 
 
 @functools.lru_cache(maxsize=4)
@@ -39,13 +49,21 @@ def _split(root: str, name: str) -> dataset.Split:
 
 @task(name="backbone-shards")
 def shards_task(
-    name: str, options_json: str, data: str, shards: list[tuple[str, int]], out: str, batch_size: int
+    name: str,
+    options_json: str,
+    data: str,
+    shards: list[tuple[str, int]],
+    out: str,
+    batch_size: int,
+    device: str = "cpu",
+    threads: int = 1,
 ) -> list[int]:
-    """The backbone's output of a batch of ``(split, shard)`` pairs, each shard's written as it is done; their sizes."""
+    """The backbone's output of a batch of ``(split, shard)`` pairs, each shard's written as it is done; their sizes.
+    ``threads``: torch threads (the cores over the workers: parallelism comes from the task runner)."""
     import torch
 
-    torch.set_num_threads(1)  # parallelism comes from the task runner
-    backbone = _backbone(name, options_json)
+    torch.set_num_threads(threads)
+    backbone = _backbone(name, options_json, device)
     store = features.FeatureStore(Path(out), name)
     fingerprint = features.output_fingerprint(backbone)
     sizes = []
@@ -68,8 +86,9 @@ def extract_features(backbone_name: str, params_path: str) -> dict:
             f"({', '.join(params.backbones.names)})"
         )
     options = backbone_options(backbone_name, params, stage.paths.root)
+    device = params.backbones.device  # resolved by open_stage: cpu, cuda or cuda:N
     backbone = _backbone(
-        backbone_name, json.dumps(options, sort_keys=True)
+        backbone_name, json.dumps(options, sort_keys=True), device
     )  # fails fast: unknown name, missing weights
     if params.train.mirror and not backbone.trainable and backbone.mirror_index() is None:
         raise ValueError(  # the train stage would refuse it, after every backbone's features
@@ -90,12 +109,14 @@ def extract_features(backbone_name: str, params_path: str) -> dict:
         if not features.shard_features_done(store, s, k, fingerprint)
     ]
     logger.info(
-        "backbone %s (%s, fingerprint %s): %d shards to compute",
+        "backbone %s (%s, fingerprint %s): %d shards to compute on %s",
         backbone_name,
         "trainable: caching its input" if backbone.trainable else f"frozen, dim {backbone.dim}",
         fingerprint[:12],
         len(todo),
+        device,
     )
+    threads = threads_per_worker(usable_cores(), params.data.runner.workers)
     share_api_with_workers()
     futures = [
         shards_task.submit(
@@ -105,6 +126,8 @@ def extract_features(backbone_name: str, params_path: str) -> dict:
             batch,
             str(store.root),
             params.backbones.batch_size,
+            device,
+            threads,
         )
         for batch in batches(todo, params.data.shards_per_task)
     ]

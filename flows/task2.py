@@ -16,12 +16,12 @@ bag: the stage writes ``{"skipped": <why>}`` as its metrics and logs nothing to 
 from __future__ import annotations
 
 import json
-import os
 
 import numpy as np
 from prefect import flow, task
 
 from components.core.files import atomic_write_bytes
+from components.core.hardware import usable_cores
 from components.domains import task2 as task2_
 from components.domains import task2_report
 from components.export.lookup import load_registered, read_champion
@@ -93,7 +93,7 @@ def task2(params_path: str = "params.yaml") -> dict:
     # fails early without a registry model or champion; onnxruntime may use every core (nothing else runs here)
     pointer = read_champion(paths.registry) if t.model in tracking.ALIASES else None
     folder = tracking.registered_folder(paths.root, params, t.model, pointer)  # models:/pidc@champion
-    model = load_registered(folder or t.model, paths.registry, threads=os.cpu_count() or 1)
+    model = load_registered(folder or t.model, paths.registry, threads=usable_cores())
     theta, images, renderer = render_bag(str(stage.params_file))
     contexts = model.posterior.context(model.inputs(images))  # the embedding runs once per image
     bag = task2_.score_bag(model.posterior, contexts, theta, params, model.name)

@@ -156,8 +156,9 @@ def _log_data_input(
 
 
 def grid_key(params: Params, data_hash: str) -> str:
-    """Identifies a grid: the data and every training setting except the sizes, the variants beside it and the runner."""
-    settings = params.train.model_dump(exclude={"sizes", "variants", "runner"}) | {
+    """Identifies a grid: the data and every training setting except the sizes, the variants beside it, the runner and
+    the device."""
+    settings = params.train.model_dump(exclude={"sizes", "variants", "runner", "device"}) | {
         "seed": params.seed,
         "data": data_hash,
         "backbones": list(params.backbones.names),

@@ -4,9 +4,11 @@
 ``<backbone>-<size>-<variant>`` of ``train.variants``) trains on the first ``size`` images of the train split (cached
 backbone outputs), keeps its best validation epoch (early stopping only with ``train.patience``), resumes from its
 checkpoint after a kill, and is scored on the test split (NLL and information gain over the prior).
-``train.runner.workers`` models train at a time, the largest first, with ``cores // workers`` torch threads each: a
-training step of these small flows is no faster on two threads than on one, so one model per core halves the stage
-(docs/studies/parallel-grid.md). A model whose configuration, data, features and code are unchanged finds its finished
+``train.runner.workers`` models train at a time, the largest first, with ``cores // workers`` torch threads each (of
+the cores this process may use, :mod:`components.core.hardware`): a training step of these small flows is no faster
+on two threads than on one, so one model per core halves the stage (docs/studies/parallel-grid.md). Each trains on
+``train.device`` (several processes share one GPU, each with its own CUDA context) and is calibrated and tested on
+the CPU. A model whose configuration, data, features and code are unchanged finds its finished
 checkpoint (keyed by all four: :func:`training_code`) and costs seconds; an edit of the code that trains it retrains it.
 MLflow (:mod:`flows.tracking`): one parent run per grid, one child run per model.
 """
@@ -15,7 +17,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -29,6 +30,7 @@ from components.core import seeding
 from components.core.code import code_fingerprint
 from components.core.config import Params, VariantConfig
 from components.core.files import atomic_write_bytes, remove_stale_temps
+from components.core.hardware import threads_per_worker, usable_cores
 from components.core.paths import ProjectPaths
 from components.features import cache as features
 from components.features.backbones import get_backbone
@@ -144,6 +146,16 @@ def _new_model(
     else:
         model = NPE(None, backbone.dim, params.box, flow_cfg, seed=model_seed)
     return model, flow_cfg, cfg, model_seed
+
+
+def _on_device(model: NPE, device: str) -> torch.device:
+    """Move ``model`` to ``device`` (a resolved ``train.device``: ``cpu``, ``cuda`` or ``cuda:N``), making a GPU this
+    process's current CUDA device (its kernels and caches go there); the device."""
+    where = torch.device(device)
+    if where.type == "cuda" and where.index is not None:
+        torch.cuda.set_device(where)
+    model.to(where)
+    return where
 
 
 def _run_key(
@@ -272,6 +284,7 @@ def train_model(
                 **{f"train.{k}": v for k, v in asdict(cfg).items()},
             }
         )
+        _on_device(model, params.train.device)
         history = train(
             model,
             (x["train"], theta["train"]),
@@ -284,6 +297,7 @@ def train_model(
         )
         # the epochs this run lacks: a finished checkpoint found by a new run, an epoch whose callback a kill cut off
         run.log_history(history.records)
+        model.cpu()  # calibrated, tested and saved on the CPU wherever it trained
         metrics = _calibrate_and_test(params, model, x, theta, history, t0)
         run.log_metrics(metrics)
         report = paths.reports("train", f"{model_id}.json")
@@ -331,8 +345,14 @@ def train_grid(params_path: str, models: list[str] | None = None) -> dict[str, d
     data_hash = dataset.open_split(paths.data, "train").content_hash
     tracking.grid_run(paths.root, params, data_hash)  # created once, before the workers look it up
     workers = min(params.train.runner.workers, len(ids))  # one model alone gets every core
-    threads = max(1, (os.cpu_count() or 1) // workers)
-    stage.logger.info("training %d models, %d at a time with %d torch threads each", len(ids), workers, threads)
+    threads = threads_per_worker(usable_cores(), workers)
+    stage.logger.info(
+        "training %d models on %s, %d at a time with %d torch threads each",
+        len(ids),
+        params.train.device,
+        workers,
+        threads,
+    )
     share_api_with_workers()
     results = at_most(
         workers,

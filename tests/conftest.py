@@ -196,7 +196,7 @@ FAST_TRAINING = {
     "train.sizes": [8, 24],
     "train.scale_to": 8,
     "train.variants": {"ensemble": {"backbone": "cues", "size": 24, "balance": 0.0, "ensemble": 2}},
-    "backbones": {"names": ["cues", "cnn"], "pretrained_dir": None, "batch_size": 256},
+    "backbones": {"names": ["cues", "cnn"], "pretrained_dir": None, "batch_size": 256, "device": "cpu"},
     "train.flow": TINY_FLOW,
     # one base scale τ: the micro project's 16 validation pairs cannot hold two (a gate on models trained for seconds
     # may put all but one pair in the night regime, a clear error by design); tests/test_train_flow.py covers the regime
@@ -226,10 +226,9 @@ def micro_project(tmp_path_factory, prefect_server) -> Path:
     return build_project(tmp_path_factory.mktemp("micro-project") / "repo", prefect_server, **FAST_TRAINING)
 
 
-def build_project(repo: Path, prefect_server: str, **overrides) -> Path:
-    """A pidc project in ``repo`` built with `dvc repro`: a git repo with the project's components/, flows/, profiles/,
-    dvc.yaml, prefect.yaml and .dvcignore, params.yaml = :func:`micro_params` with ``overrides``, every stage run
-    through its Prefect flow against the Prefect server ``prefect_server`` (one server for every stage, as run.sh)."""
+def new_project(repo: Path, **overrides) -> Path:
+    """A pidc project in ``repo``, not yet run: a git repo with the project's components/, flows/, profiles/,
+    dvc.yaml, prefect.yaml and .dvcignore, params.yaml = :func:`micro_params` with ``overrides``, DVC initialised."""
     repo.mkdir(parents=True)
     for name in ("components", "flows", "profiles"):  # profiles/: a dependency of the stages (params `profile`)
         shutil.copytree(PROJECT_ROOT / name, repo / name, ignore=shutil.ignore_patterns("__pycache__"))
@@ -241,6 +240,14 @@ def build_project(repo: Path, prefect_server: str, **overrides) -> Path:
     for cmd in (["git", "init", "-q"], dvc + ["init", "-q"], dvc + ["config", "core.analytics", "false"]):
         r = run_in(cmd, repo)
         assert r.returncode == 0, r.stdout + r.stderr
+    return repo
+
+
+def build_project(repo: Path, prefect_server: str, **overrides) -> Path:
+    """:func:`new_project` built with `dvc repro`: every stage run through its Prefect flow against the Prefect server
+    ``prefect_server`` (one server for every stage, as run.sh)."""
+    new_project(repo, **overrides)
+    dvc = [sys.executable, "-m", "dvc"]
     r = run_in(dvc + ["repro"], repo, env={"PREFECT_API_URL": prefect_server})
     if r.returncode != 0:
         raise RuntimeError(f"`dvc repro` of the project in {repo} failed:\n{r.stdout}\n{r.stderr}")

@@ -267,3 +267,34 @@ def test_out_of_memory_names_the_size_options(capsys, monkeypatch):
         "pidc relate: error: out of memory (could not allocate 22.4 GiB); use smaller sizes: --points 200000000, "
         "--draws-per-image 64"
     )
+
+
+def test_config_check_prints_the_plan_on_this_machine(capsys):
+    """After the resolved config, one comment line per stage with a runner: its kind, workers (``auto``: the usable
+    cores), threads per worker and device; the GPU profile is valid here, its torch stages named as unable to run
+    on a machine where torch sees no CUDA (with the key and what was found), and the command still exits 0."""
+    import torch
+
+    from components.core.hardware import usable_cores
+
+    params = Path(__file__).resolve().parents[1] / "params.yaml"
+    cores = usable_cores()
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    assert main(["config", "check", "--params", str(params)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    head = f"# the plan on this machine ({cores} usable core{'s' if cores != 1 else ''}, {gpus} CUDA device(s)):"
+    plan = out[out.index(head) + 1 :]
+    workers = f"{cores} worker{'s' if cores != 1 else ''}"
+    assert [re.sub(r"\s+", " ", line) for line in plan] == [
+        f"# generate processes, {workers} × 1 thread, device —",
+        f"# features processes, {workers} × 1 thread, device {device}",
+        f"# train processes, {workers} × 1 thread, device {device}",
+        f"# export processes, {workers} × 1 thread, device —",
+        f"# evaluate processes, {workers} × 1 thread, device —",
+    ]
+    assert main(["config", "check", "--params", str(params), "--profile", "gpu"]) == 0
+    out = capsys.readouterr().out
+    if not torch.cuda.is_available():
+        assert re.search(r"^#   train +cannot run here: train\.device: cuda, but torch sees no CUDA device", out, re.M)
+        assert re.search(r"^#   features +cannot run here: backbones\.device: cuda, but torch sees no CUDA", out, re.M)

@@ -145,7 +145,7 @@ def test_unknown_profile_is_named(tmp_path: Path, name):
     with pytest.raises(ConfigError, match=r"params\.yaml: profile: unknown profile .*; profiles found: default \("):
         load_params(tmp_path / "params.yaml")
     with pytest.raises(
-        ConfigError, match=r"params\.yaml: profile: unknown profile 'x'; profiles found: default, camera, paper"
+        ConfigError, match=r"params\.yaml: profile: unknown profile 'x'; profiles found: default, camera, gpu, paper"
     ):
         load_params(PROJECT_ROOT / "params.yaml", profile="x")
 
@@ -455,7 +455,7 @@ def test_config_check_names_an_unknown_profile_and_a_missing_file(tmp_path: Path
     r = _check("--profile", "huge")
     assert (
         r.returncode == 2
-        and "params.yaml: profile: unknown profile 'huge'; profiles found: default, camera, paper" in r.stderr
+        and "params.yaml: profile: unknown profile 'huge'; profiles found: default, camera, gpu, paper" in r.stderr
     )
     r = _check("--params", str(tmp_path / "none.yaml"))
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "cannot read params file" in r.stderr

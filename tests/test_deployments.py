@@ -40,7 +40,7 @@ RUN_TIMEOUT_S = 300
 MONITORED_PROJECT = {
     "data.splits": {"train": 2000, "val": 200, "test": 120},
     "data.shard_size": 500,
-    "backbones": {"names": ["cues"], "pretrained_dir": None, "batch_size": 256},
+    "backbones": {"names": ["cues"], "pretrained_dir": None, "batch_size": 256, "device": "cpu"},
     "train.sizes": [2000],
     "train.epochs": 20,
     "train.scale_to": 8,

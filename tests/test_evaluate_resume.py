@@ -29,7 +29,7 @@ SETTINGS = {
     "train.variants": {},
     "train.flow": TINY_FLOW,
     "train.temperature_regime": None,
-    "backbones": {"names": ["cues"], "pretrained_dir": None, "batch_size": 256},
+    "backbones": {"names": ["cues"], "pretrained_dir": None, "batch_size": 256, "device": "cpu"},
     # one model at a time: the kill below lands after the first model is kept, while the second is evaluated
     "evaluate.runner": {"kind": "threads", "workers": 1, "dask_address": None},
     "evaluate.example_images": 0,  # a model's plots: its PPC sheet and its profile (the corner plots take seconds)

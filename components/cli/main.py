@@ -110,10 +110,33 @@ def _cmd_config_check(args: argparse.Namespace) -> int:
 
         atomic_write_bytes(args.write, f"{header}\n{text}".encode())
         print(f"{args.params}, profile {params.profile}: valid; the resolved config written to {args.write}")
-        return 0
-    print(header)
-    print(text, end="")
+    else:
+        print(header)
+        print(text, end="")
+    print("\n".join(_plan_lines(params)))
     return 0
+
+
+def _plan_lines(params) -> list[str]:
+    """The stages' plan on this machine (``components.core.hardware``), as YAML comments: per stage its runner's kind,
+    workers, threads per worker and device (``—``: no torch model, or onnxruntime on the CPU). A stage whose workers
+    or device this machine cannot give is a line naming the key and what was found (the stage would stop with it at
+    its start); the file is valid all the same: a profile for another machine is checked here too."""
+    from components.core.hardware import STAGES, cuda_devices_without_torch, stage_plan, usable_cores
+
+    cores, gpus = usable_cores(), cuda_devices_without_torch()  # without torch: the check stays fast
+    lines = [f"# the plan on this machine ({cores} usable core{'s' if cores != 1 else ''}, {gpus} CUDA device(s)):"]
+    for stage, *_ in STAGES:
+        try:
+            plan = stage_plan(params, stage, cores, gpus)
+        except ValueError as e:
+            lines.append(f"#   {stage:<9} cannot run here: {e}")
+            continue
+        lines.append(
+            f"#   {stage:<9} {plan.kind}, {plan.workers} worker{'s' if plan.workers != 1 else ''} × "
+            f"{plan.threads} thread{'s' if plan.threads != 1 else ''}, device {plan.device or '—'}"
+        )
+    return lines
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -80,6 +80,28 @@ PositiveInt = Annotated[StrictInt, Field(gt=0)]
 NonNegativeInt = Annotated[StrictInt, Field(ge=0)]
 
 
+def _device_form(v: str) -> str:
+    import re
+
+    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", v):
+        raise ValueError(f"must be auto, cpu, cuda or cuda:N (N a device index), got {v!r}")
+    return v
+
+
+#: a torch device: ``auto``, ``cpu``, ``cuda`` or ``cuda:N`` (its form; what it means here: components/core/hardware.py)
+Device = Annotated[str, AfterValidator(_device_form)]
+
+
+def _workers_form(v: object) -> object:
+    if v == "auto" or (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+        return v
+    raise ValueError(f"must be auto or a whole number ≥ 1, got {v!r}")
+
+
+#: a runner's workers: ``auto`` (the usable cores, resolved at a stage's start) or a whole number ≥ 1
+Workers = Annotated[PositiveInt | Literal["auto"], BeforeValidator(_workers_form)]
+
+
 #: the backbones of ``components.features.backbones`` (``available()``; tests/test_config.py keeps the two equal)
 BackboneName = Literal["cues", "tiny", "cnn", "efficientnet_lite0", "resnet50", "dinov2", "clip"]
 
@@ -235,8 +257,10 @@ class RunnerConfig(_Section):
 
     kind: Literal["threads", "processes", "dask"]
     """``threads`` (one process), ``processes`` (local worker processes) or ``dask`` (a Dask cluster)"""
-    workers: PositiveInt
-    """tasks run at a time (threads, processes, or the workers of a local Dask cluster)"""
+    workers: Workers
+    """tasks run at a time (threads, processes, or the workers of a local Dask cluster); ``auto``: the cores this
+    process may use (its CPU affinity, capped by a cgroup CPU quota: components/core/hardware.py), resolved at the
+    stage's start; a number above them is an error naming the key"""
     dask_address: str | None
     """address of an existing Dask scheduler (``tcp://host:8786``); null = a local cluster (kind: dask only)"""
 
@@ -300,6 +324,11 @@ class BackbonesConfig(_Section):
     (``<dir>/<backbone>/``, ``save_pretrained`` folders); null = the Hugging Face cache"""
     batch_size: PositiveInt
     """images per batch through a frozen backbone in the features stage"""
+    device: Device
+    """where the features stage runs the frozen backbones (the cues' networks, the pretrained ones): ``auto`` (CUDA
+    when torch sees it, else the CPU), ``cpu``, ``cuda`` or ``cuda:N``; resolved at the stage's start (``cuda`` without
+    one is an error naming the key). Not part of the features' fingerprint: features cached on another device are
+    kept"""
 
     @field_validator("names")
     @classmethod
@@ -444,7 +473,13 @@ class TrainConfig(_Section):
     empty: the grid alone"""
     runner: RunnerConfig
     """the task runner training the models in parallel, the largest first (processes: ``cores // workers`` torch
-    threads each); study: docs/studies/parallel-grid.md"""
+    threads each, of the cores this process may use); study: docs/studies/parallel-grid.md"""
+    device: Device
+    """where the models train (the flows, a jointly trained ``cnn``): ``auto`` (CUDA when torch sees it, else the
+    CPU), ``cpu``, ``cuda`` or ``cuda:N``; resolved at the stage's start (``cuda`` without one is an error naming the
+    key). Several models train on one GPU at once, one process each (``runner.workers``), each with its own CUDA
+    context; calibration and the test NLL are computed on the CPU. The same seeds: weights differ from the CPU's in
+    float rounding, the figures within their standard errors. Not part of a checkpoint's key"""
 
     @field_validator("sizes")
     @classmethod
@@ -511,7 +546,7 @@ class ExportConfig(_Section):
     @field_validator("runner")
     @classmethod
     def _exports_in_processes(cls, v: RunnerConfig) -> RunnerConfig:
-        if v.workers > 1 and v.kind != "processes":
+        if v.workers != 1 and v.kind != "processes":  # auto may mean several
             raise ValueError(
                 f"kind {v.kind!r} with {v.workers} workers: parallel exports need kind: processes (torch's ONNX "
                 "exporter keeps global state, two exports in one process corrupt each other), or workers: 1"

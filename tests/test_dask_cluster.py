@@ -109,9 +109,15 @@ def fast_training() -> dict:
 
 
 def hashes(folder: Path) -> dict[str, str]:
-    """Relative path → SHA-256 of every file under ``folder``."""
+    """Relative path → SHA-256 of every file under ``folder``. A ``.gitignore`` is DVC's bookkeeping, one line per
+    output in the order DVC happened to commit them (which ``dvc repro`` and ``dvc repro features`` need not share):
+    its sorted lines are hashed, so the same outputs give the same hash and a missing or extra one still differs."""
+
+    def content(p: Path) -> bytes:
+        return b"\n".join(sorted(p.read_bytes().splitlines())) if p.name == ".gitignore" else p.read_bytes()
+
     return {
-        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        str(p.relative_to(folder)): hashlib.sha256(content(p)).hexdigest()
         for p in sorted(folder.rglob("*"))
         if p.is_file()
     }

@@ -25,9 +25,9 @@ import pytest
 from PIL import Image
 
 from components.cli.main import main
-from components.core import seeding, weather
+from components.core import weather
 from components.evaluate.summary import hdi
-from components.export.lookup import CHAMPION_POINTER
+from tests import tiny_registry
 
 BOX = weather.Box.full()
 NAMES = BOX.names
@@ -43,61 +43,16 @@ NIGHT = ([0, 80, 0, -90, 0, 0], [20, 100, 10, -40, 30, 10])
 
 def render_folder(folder: Path, box: tuple[list[float], list[float]], n: int, seed: int, prefix: str = "") -> Path:
     """n PNGs of 32×32 at weathers uniform in ``box`` (distinct scenes)."""
-    from components.simulate.procedural import ProceduralSimulator
-
-    sim = ProceduralSimulator(32, 32)
-    folder.mkdir(parents=True, exist_ok=True)
-    r = seeding.rng(seed, "test", "cli-folder")
-    for i in range(n):
-        theta = r.uniform(box[0], box[1])
-        image = sim.render(weather.weather_from_theta(theta, 100.0), 1000 * seed + i)
-        Image.fromarray(image).save(folder / f"{prefix}{i:03d}.png")
-    return folder
+    return tiny_registry.render_folder(folder, box, n, seed, prefix, stream="cli-folder")
 
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory) -> dict[str, Path]:
     """A registry with model ``cues-tiny`` (the champion) and folders of images."""
-    from components.export.onnx import export_posterior
-    from components.features.backbones import get_backbone
-    from components.features.cache import posterior_inputs
-    from components.posterior import NPE, FlowConfig, TrainingConfig, train
     from components.simulate.procedural import ProceduralSimulator
 
     root = tmp_path_factory.mktemp("cli-registry")
-    r = seeding.rng(0, "test", "cli-registry")
-    n = 288
-    theta, azimuth = BOX.sample(r, n), weather.sample_azimuth(r, n)
-    sim = ProceduralSimulator(32, 32)
-    images = np.stack(
-        [sim.render(weather.weather_from_theta(t, a), i) for i, (t, a) in enumerate(zip(theta, azimuth, strict=False))]
-    )
-    with pytest.warns(UserWarning, match="converting 32×32 images to its input size"):
-        x = posterior_inputs(get_backbone("cues"), images)
-    model = NPE(None, x.shape[1], BOX, FlowConfig(transforms=1, hidden_features=(64,), bins=6), seed=0)
-    train(
-        model,
-        (x[:256], theta[:256]),
-        (x[256:], theta[256:]),
-        TrainingConfig(epochs=12, batch_size=32, lr=3e-3, input_noise=0.5),
-        progress=False,
-    )
-    registry = root / "registry"
-    export_posterior(
-        model,
-        registry / "cues-tiny",
-        exporter="torchscript",
-        card={
-            "model_id": "cues-tiny",
-            "backbone": "cues",
-            "backbone_options": {},
-            "size": 256,
-            "training_renders": {"simulator": "procedural", "height": 32, "width": 32},  # as the export flow writes
-        },
-    )
-    champion = registry.parent / CHAMPION_POINTER  # <project>/reports/task1/champion.json
-    champion.parent.mkdir(parents=True)
-    champion.write_text(json.dumps({"model": "cues-tiny", "metric": "calibration_error"}))
+    registry = tiny_registry.build_registry(root, "cli-registry", {"model": "cues-tiny", "metric": "calibration_error"})
 
     mixed = root / "mixed"
     render_folder(mixed, CLEAR, 2, 10)

@@ -17,13 +17,18 @@ from components.cli.reading import (
     check_figure_path,
     check_inputs,
     check_json_path,
+    check_prior,
     check_samples,
     check_seed,
     count,
     list_paths,
     load_model,
+    load_prior,
     none_read,
+    prior_json,
+    prior_line,
     read_batches,
+    reweighted,
     save_corner,
     say,
     write_json,
@@ -79,6 +84,7 @@ def cmd_characterize(args: argparse.Namespace) -> int:
             check_draws_path(args.samples_out)
         except (ValueError, ImportError) as e:
             raise CLIError(f"--samples-out {e}") from None
+    min_ess = check_prior(args, n, "--samples")
     check_inputs(args.images)
     paths = _distinct(list_paths(args.images), "characterize")
     corners = _corner_paths(args.corner, paths) if args.corner is not None else {}
@@ -87,6 +93,8 @@ def cmd_characterize(args: argparse.Namespace) -> int:
     check_outputs(outputs)
     model = load_model(args)
     post = model.posterior
+    prior = load_prior(args, model, min_ess, "--samples")
+    ess: list[float] = []  # each image's ESS under --prior
     writer = None if args.samples_out is None else DrawsWriter(args.samples_out, post.box.names)
     done = 0
     summaries: list[dict] = []  # for --json
@@ -94,11 +102,21 @@ def cmd_characterize(args: argparse.Namespace) -> int:
     try:
         for read, bar in read_batches(model, paths, "characterize", "characterize", log):
             for i, path in enumerate(read.paths):
-                draws = post.sample(read.x[i : i + 1], n, derive_seed(seed, "characterize", str(path)))[0]
+                x, image_seed = read.x[i : i + 1], derive_seed(seed, "characterize", str(path))
                 head = f"== {path}" + (f"  (note: {read.notes[i]})" if read.notes[i] else "")
+                extra = {}
+                if prior is None:
+                    draws = post.sample(x, n, image_seed)[0]
+                else:  # resampled from n draws reweighted to --prior
+                    user, found = reweighted(prior, post, [([path], x)], n, image_seed, str(path))
+                    draws, extra = user.sample(x, n, image_seed)[0], {"ess": float(found[0])}
+                    ess.append(extra["ess"])
+                    head += f"  (prior {prior.path}: effective sample size {found[0]:.1f} of {n})"
                 summary = summarize(draws)
                 say(bar, f"{head}\n{format_summary(summary, post.box)}\n")
-                summaries.append({"image": str(path), "note": read.notes[i] or None, **summary.to_dict(post.box)})
+                summaries.append(
+                    {"image": str(path), "note": read.notes[i] or None, **extra, **summary.to_dict(post.box)}
+                )
                 if writer is not None:
                     writer.write(str(path), draws)
                 if path in corners:
@@ -117,10 +135,19 @@ def cmd_characterize(args: argparse.Namespace) -> int:
         writer.close()
         print(f"wrote {count(writer.rows, 'draw')} of {count(done, 'image')} to {writer.path}", file=sys.stderr)
     skipped = len(paths) - done
+    if prior is not None:
+        print(prior_line(prior, ess, n), file=sys.stderr)
     if args.json is not None:
         write_json(
             args.json,
-            {"model": model.name, "seed": seed, "samples": n, **log.to_json(), "images": summaries},
+            {
+                "model": model.name,
+                "seed": seed,
+                "samples": n,
+                **(prior_json(prior, ess, n) if prior is not None else {}),
+                **log.to_json(),
+                "images": summaries,
+            },
         )
     print(
         f"characterized {count(done, 'image')} with {model.name} ({count(n, 'draw')} each, seed {seed})"

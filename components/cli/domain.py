@@ -23,13 +23,18 @@ from components.cli.reading import (
     check_figure_path,
     check_folder,
     check_json_path,
+    check_prior,
     check_samples,
     check_seed,
     count,
     folder_name,
     list_paths,
     load_model,
+    load_prior,
+    prior_json,
+    prior_line,
     read_all,
+    reweighted,
     save_corner,
     write_json,
 )
@@ -197,12 +202,14 @@ def cmd_domain(args: argparse.Namespace) -> int:
     folder = check_folder(Path(args.folder), "domain")
     if args.decay is not None and not (0.0 < args.decay <= 1.0):
         raise CLIError(f"--decay must be in (0, 1] (the weight factor per image of age), got {args.decay:g}")
+    min_ess = check_prior(args, n, "--samples")
     paths = list_paths([folder])
     outputs = [("--json", args.json), ("--corner", args.corner)]
     check_not_input(outputs, paths)
     check_outputs(outputs)
     paths, weights, given = _weighted_paths(args.weights, folder, paths)
     model = load_model(args)
+    prior = load_prior(args, model, min_ess, "--samples")
     name = folder_name(folder)
     log = ReadLog("domain")
     bag = read_all(model, paths, "domain", f"domain {name}", folder, log)
@@ -210,12 +217,17 @@ def cmd_domain(args: argparse.Namespace) -> int:
     lost = _skipped_weight(given, weights, [Path(p).name for p, _ in log.skipped]) if weights else None
     if lost is not None:
         print(f"pidc domain: note: {lost['line']}", file=sys.stderr)
-    domain, how = _weighted_domain(args, model.posterior, bag, weights)
+    posterior, ess = model.posterior, None
+    if prior is not None:  # each image's posterior under --prior: n draws reweighted
+        posterior, ess = reweighted(prior, posterior, [(bag.paths, bag.x)], n, derive_seed(seed, "domain"), name)
+    domain, how = _weighted_domain(args, posterior, bag, weights)
     draws = domain.sample(n, derive_seed(seed, "domain"))
     box = model.posterior.box
     size = _effective_size(domain.weights)
     print(f"domain {folder}: {count(len(bag.paths), 'image')}, {how}; effective size {size:.1f}")
     print(f"model {model.name}; {count(n, 'draw')} from the mixture of the posteriors (seed {seed})")
+    if prior is not None:
+        print(prior_line(prior, ess, n))
     summary = summarize(draws)
     print(format_summary(summary, box, moments=True))
     if args.json is not None:
@@ -227,6 +239,7 @@ def cmd_domain(args: argparse.Namespace) -> int:
             "effective_size": _effective_size(domain.weights),
             "model": model.name,
             "seed": seed,
+            **(prior_json(prior, ess, n) if prior is not None else {}),
             **log.to_json(),
         }
         if lost is not None:

@@ -25,8 +25,8 @@ from typing import Any
 
 from components.cli.characterize import cmd_characterize
 from components.cli.domain import cmd_domain
-from components.cli.reading import MIN_SAMPLES
-from components.cli.relate import RELATE_DEFAULTS, cmd_relate
+from components.cli.reading import MIN_ESS, MIN_SAMPLES
+from components.cli.relate import RELATE_DEFAULTS, RELATE_PRIOR_DRAWS, cmd_relate
 
 __all__ = ["add_model_commands"]
 
@@ -40,6 +40,23 @@ def _model_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--registry", type=Path, default=Path("registry"), help="the registry folder (default: registry)")
     p.add_argument("--seed", type=int, default=0, help="seed of every random draw (default 0)")
+
+
+def _prior_options(p: argparse.ArgumentParser, draws: str) -> None:
+    p.add_argument(
+        "--prior",
+        type=Path,
+        metavar="FILE.yaml",
+        help="your own prior, a density per parameter (docs/cli.md, 'Your own prior'): the posterior draws are "
+        "reweighted from the training prior (uniform on the model's box) to it; others keep the training prior",
+    )
+    p.add_argument(
+        "--min-ess",
+        type=float,
+        metavar="N",
+        help=f"with --prior: the fewest effective draws (of {draws} per image) an image's reweighted posterior may "
+        f"rest on; below, an error naming the image (default {MIN_ESS})",
+    )
 
 
 def add_model_commands(sub: Any) -> None:
@@ -66,6 +83,7 @@ def _add_characterize(sub: Any) -> None:
     p.add_argument(
         "--json", type=Path, metavar="FILE.json", help="write each image's summary (median, HDI, mean, std) as JSON"
     )
+    _prior_options(p, "--samples")
     p.set_defaults(func=cmd_characterize)
 
 
@@ -96,6 +114,7 @@ def _add_domain(sub: Any) -> None:
     p.add_argument(
         "--json", type=Path, metavar="FILE.json", help="write the domain's summary (median, HDI, mean, std) as JSON"
     )
+    _prior_options(p, "--samples")
     p.set_defaults(func=cmd_domain)
 
 
@@ -159,5 +178,13 @@ def _add_relate(sub: Any) -> None:
         type=Path,
         metavar="FILE.png",
         help="the target's marginals beside the fitted mixture's and each source's",
+    )
+    _prior_options(p, "--prior-draws")
+    p.add_argument(
+        "--prior-draws",
+        type=int,
+        metavar="N",
+        help=f"with --prior: posterior draws per image reweighted to it, of which --draws-per-image are resampled "
+        f"(default {RELATE_PRIOR_DRAWS})",
     )
     p.set_defaults(func=cmd_relate)

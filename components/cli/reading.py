@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import sys
 import warnings
@@ -46,6 +47,13 @@ __all__ = [
     "check_inputs",
     "say",
     "progress",
+    "MIN_ESS",
+    "UserPriorSetup",
+    "check_prior",
+    "load_prior",
+    "reweighted",
+    "prior_line",
+    "prior_json",
 ]
 
 #: Images read and turned into posterior inputs per batch (bounds memory for large folders).
@@ -687,3 +695,129 @@ def check_inputs(paths: Sequence[str | Path]) -> None:
             raise CLIError(f"{given}: a broken link (its target {path.readlink()} does not exist)")
         what = "folder" if str(given).endswith(("/", "\\")) else "file or folder"
         raise CLIError(f"{given}: no such {what}")
+
+
+#: ``--min-ess``'s default: the fewest effective draws an image's reweighted posterior may rest on, as
+#: :data:`MIN_SAMPLES` is for plain draws (a 68.27 % HDI's ends are ~16 effective draws a side at 100).
+MIN_ESS = 100
+
+
+def check_prior(args: argparse.Namespace, proposals: int, option: str) -> float | None:
+    """``--min-ess`` (default :data:`MIN_ESS`; positive and at most the ``proposals`` draws per image that ``option``
+    sets, since the ESS of m draws is at most m) once ``--prior`` is checked to be a file, before any work; None
+    without ``--prior`` (and then ``--min-ess`` or ``--prior-draws`` is an error)."""
+    if args.prior is None:
+        for name, value in (("--min-ess", args.min_ess), ("--prior-draws", getattr(args, "prior_draws", None))):
+            if value is not None:
+                raise CLIError(f"{name} applies with --prior FILE only")
+        return None
+    path = Path(args.prior)
+    if not path.is_file():
+        raise CLIError(f"--prior {path}: {'not a file' if path.exists() else 'no such file'}")
+    min_ess = float(MIN_ESS if args.min_ess is None else args.min_ess)
+    if not (0 < min_ess <= proposals):
+        raise CLIError(
+            f"--min-ess must be in (0, {proposals}] (the effective sample size of {proposals} draws per image, "
+            f"{option}, is at most {proposals}), got {min_ess:g}"
+        )
+    return min_ess
+
+
+@dataclass(frozen=True)
+class UserPriorSetup:
+    """A command's ``--prior``: the user's prior (:class:`components.domains.prior.UserPrior`) on the model's
+    training box ``train``, and ``option``, the option that sets the draws per image (for the ESS error)."""
+
+    path: Path
+    prior: Any
+    train: Any
+    min_ess: float
+    option: str
+
+
+def load_prior(args: argparse.Namespace, model: Any, min_ess: float | None, option: str) -> UserPriorSetup | None:
+    """The ``--prior`` file read on ``model``'s training prior (its card's box; :func:`components.domains.prior.
+    training_prior`), None without ``--prior``: a one-line :class:`CLIError` naming the file, the parameter and the
+    problem."""
+    if args.prior is None or min_ess is None:
+        return None
+    from components.domains.prior import PriorError, read_prior, training_prior
+
+    try:
+        train = training_prior(model.posterior.card, str(model.folder / "card.json"))
+        prior = read_prior(args.prior, train)
+    except PriorError as e:
+        raise CLIError(f"--prior {e}") from None
+    return UserPriorSetup(Path(args.prior), prior, train, min_ess, option)
+
+
+def reweighted(
+    setup: UserPriorSetup,
+    posterior: Any,
+    reads: Sequence[tuple[Sequence[Path], np.ndarray]],
+    proposals: int,
+    seed: int,
+    desc: str,
+) -> tuple[Any, np.ndarray]:
+    """The posterior under the user's prior (:class:`components.domains.prior.ReweightedPosterior`) prepared on the
+    images of ``reads`` (their paths and inputs), and each image's ESS; every command reweights here. A
+    :class:`CLIError` names the image of lowest ESS when it is below ``--min-ess``."""
+    from components.domains.prior import ReweightedPosterior
+
+    found = ReweightedPosterior(posterior, setup.prior, setup.train, proposals)
+    paths = [p for ps, _ in reads for p in ps]
+    parts = []
+    with progress(len(paths), f"{desc}: reweighting to {setup.path.name}") as bar:
+        for _, x in reads:
+            for start in range(0, len(x), READ_BATCH):
+                chunk = x[start : start + READ_BATCH]
+                parts.append(found.prepare(chunk, seed))
+                bar.update(len(chunk))
+    ess = np.concatenate(parts)
+    below = np.flatnonzero(ess < setup.min_ess)
+    if below.size:
+        worst = int(below[np.argmin(ess[below])])
+        others = (
+            f" ({below.size} of {count(len(ess), 'image')} are below it; this is the lowest)" if below.size > 1 else ""
+        )
+        if ess[worst] == 0:
+            raise CLIError(
+                f"{paths[worst]}: no posterior draw of this image has a positive density under --prior {setup.path} "
+                f"(effective sample size 0 of {proposals} draws){others}: the prior rules out the weather the image "
+                "shows; widen the prior"
+            )
+        need = math.ceil(proposals * setup.min_ess / ess[worst])
+        raise CLIError(
+            f"{paths[worst]}: effective sample size {ess[worst]:.1f} of {proposals} draws under --prior {setup.path} "
+            f"is below --min-ess {setup.min_ess:g}{others}: the prior puts its weight on few of the image's posterior "
+            f"draws; use more {setup.option} (about {need}) or a prior that agrees with the image"
+        )
+    return found, ess
+
+
+def prior_line(setup: UserPriorSetup, ess: np.ndarray, proposals: int) -> str:
+    """``prior FILE: ESS per image min …, median … of m draws`` (the line every command prints)."""
+    return (
+        f"prior {setup.path} (importance weights from the training prior, uniform on the model's box): effective "
+        f"sample size per image min {np.min(ess):.1f}, median {np.median(ess):.1f} of {proposals} draws"
+    )
+
+
+def prior_json(setup: UserPriorSetup, ess: np.ndarray, proposals: int) -> dict[str, Any]:
+    """The ``prior`` entry of ``--json``: the file, its densities, the draws per image, ``--min-ess`` and the ESS."""
+    from components.domains.prior import ess_summary
+
+    return {
+        "prior": {
+            "file": str(setup.path),
+            "parameters": setup.prior.describe(),
+            "training_prior": "uniform on the model's box: "
+            + ", ".join(
+                f"{n} [{lo:g}, {hi:g}]"
+                for n, lo, hi in zip(setup.train.names, setup.train.low, setup.train.high, strict=True)
+            ),
+            "draws_per_image": proposals,
+            "min_ess": setup.min_ess,
+            "ess": {"images": len(ess), **ess_summary(ess)},
+        }
+    }

@@ -8,6 +8,7 @@ Used by the ``pidc`` CLI only.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import warnings
@@ -25,17 +26,22 @@ from components.cli.reading import (
     check_figure_path,
     check_folder,
     check_json_path,
+    check_prior,
     check_seed,
     count,
     folder_name,
     list_paths,
     load_model,
+    load_prior,
+    prior_json,
+    prior_line,
     read_all,
+    reweighted,
     write_json,
 )
 from components.core.seeding import derive_seed
 
-__all__ = ["RELATE_DEFAULTS", "cmd_relate"]
+__all__ = ["RELATE_DEFAULTS", "RELATE_PRIOR_DRAWS", "cmd_relate"]
 
 #: ``pidc relate``'s defaults: the ``task3`` stage's defaults in params.yaml (``task3.n_points``, ``smoothing``,
 #: ``draws_per_image``, ``bandwidth_scale``; a test holds them equal), so that the command relates folders as the stage
@@ -48,6 +54,9 @@ RELATE_DEFAULTS: dict[str, Any] = {"n_points": 64, "smoothing": "scott", "draws_
 #: (one source), 0.1 gave 1, where the default 3 gave 0.14 and 0.08. (With one source, heavy tails put thresholds far
 #: above 1 at times, e.g. 4.6 with ``--smoothing none``: not saturation, and not refused.)
 SATURATION_BAND = 0.02
+#: ``--prior-draws``'s default: posterior draws per image reweighted to ``--prior`` (``--draws-per-image`` of them are
+#: resampled), as ``characterize`` and ``domain`` draw ``--samples`` 1000 by default.
+RELATE_PRIOR_DRAWS = 1000
 
 
 def _fixed_draws(posterior: Any, bags: list[np.ndarray], m: int, seed: int) -> list[np.ndarray]:
@@ -192,6 +201,8 @@ def cmd_relate(args: argparse.Namespace) -> int:
     folders = [check_folder(Path(f), "relate") for f in (args.target, *args.sources)]
     _check_distinct_folders(folders)
     alpha, scale = _check_options(args)
+    proposals = _prior_draws(args)
+    min_ess = check_prior(args, proposals, "--prior-draws")
     check_json_path(args.json)
     check_figure_path(args.plot, "--plot")
     listed = [list_paths([f]) for f in folders]
@@ -205,10 +216,21 @@ def cmd_relate(args: argparse.Namespace) -> int:
         for f, paths in zip(folders, listed, strict=True)
     ]
     log.finish(model, each=True)
+    prior = load_prior(args, model, min_ess, "--prior-draws")
+    if prior is not None:  # the target and the sources under the same prior: their kernels live under it
+        posterior, ess = reweighted(
+            prior, model.posterior, [(b.paths, b.x) for b in bags], proposals, derive_seed(seed, "relate"), "relate"
+        )
+        model = dataclasses.replace(model, posterior=posterior)
     found = _relate_folders(args, model, folders, [b.x for b in bags], seed, alpha, scale)
     _print_relation(args, model, found, seed, alpha, scale)
+    if prior is not None:
+        print(prior_line(prior, ess, proposals))
     if args.json is not None:
-        write_json(args.json, _relation_json(args, model, found, seed, alpha) | log.to_json() | found.parameters())
+        report = _relation_json(args, model, found, seed, alpha)
+        if prior is not None:
+            report |= prior_json(prior, ess, proposals)
+        write_json(args.json, report | log.to_json() | found.parameters())
     if args.plot is not None:
         _plot_relation(args.plot, model, found, alpha)
     return 0
@@ -230,6 +252,18 @@ def _check_options(args: argparse.Namespace) -> tuple[float, float]:
     if args.draws_per_image < 2:
         raise CLIError(f"--draws-per-image must be at least 2 (a bag's spread), got {args.draws_per_image}")
     return alpha, _bandwidth_scale(args.bandwidth_scale, args.smoothing == "scott")
+
+
+def _prior_draws(args: argparse.Namespace) -> int:
+    """``--prior-draws`` (default :data:`RELATE_PRIOR_DRAWS`), with ``--prior`` at least ``--draws-per-image``, which
+    are resampled from them (without ``--prior``, :func:`check_prior` refuses it when it is given)."""
+    draws = RELATE_PRIOR_DRAWS if args.prior_draws is None else args.prior_draws
+    if args.prior is not None and draws < args.draws_per_image:
+        raise CLIError(
+            f"--prior-draws must be at least --draws-per-image {args.draws_per_image} (the draws resampled from "
+            f"them), got {draws}"
+        )
+    return draws
 
 
 @dataclass(frozen=True)

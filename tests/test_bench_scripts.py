@@ -5,6 +5,7 @@ another root seed, the same ones every time."""
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -368,3 +369,90 @@ def test_conditional_coverage_of_exact_posteriors_is_the_mass_in_every_cell() ->
             assert outside <= 9, outside  # 70 cells: 3.5 expected, P(> 9) < 1 % were they independent
         else:
             assert below >= 60, below
+
+
+# --- bench_watch: `pidc watch` on simulated drives, at a tiny scale with a tiny model -----------------------------
+
+#: ``bench_watch.py``'s smoke scale shrunk further for a 32×32 model: three sources of 24 s (one block cycle of 60
+#: frames each), one in-ODD drive of 20 s, one fog and one dusk exit of 35 s (a 10 s ramp from 20 s on), a 20 s
+#: "hour", small watch options.
+TINY_WATCH = [
+    *("--quick", "--size", "32", "--source-seconds", "24", "--in-odd-seconds", "20", "--exits", "30=1"),
+    *("--dusk-drives", "1", "--hour-seconds", "20", "--exit-seconds", "20,10,5"),
+    *("--set", "window=20", "--set", "block=60", "--set", "false_alarm_rate=0.05", "--set", "samples=100"),
+    *("--set", "draws_per_image=16", "--set", "n_points=16", "--set", "source_centres=256", "--set", "batch=32"),
+]
+
+
+@pytest.fixture(scope="module")
+def watch_registry(tmp_path_factory) -> Path:
+    from tests.tiny_registry import build_registry
+
+    return build_registry(tmp_path_factory.mktemp("bench-watch"), "bench-watch")
+
+
+def test_bench_watch_runs_every_mode_on_the_known_weather_and_resumes(watch_registry, tmp_path, capsys) -> None:
+    """Every mode of ``bench_watch`` at a tiny scale: the in-ODD hours are the drives' driving before they leave the
+    sources' range (known from their own weather), each exit is where the drive's weather first leaves that range, the
+    one-hour mode measured a child process; the JSON line is strict JSON; a second run reads the records instead of
+    watching again."""
+    from benchmarks.bench_watch import exit_drives, in_odd_drives, main, parse
+    from components.simulate.drive import first_exit
+
+    args = ["all", "--registry", str(watch_registry), "--out", str(tmp_path), *TINY_WATCH]
+    scale = parse(args).scale
+    line = main(args)
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == line  # strict JSON: no NaN, no inf
+    hull = {n: tuple(v) for n, v in line["hull"].items()}
+    assert hull["precipitation"] == (0.0, 0.0) and hull["fog_density"][1] <= 10.0
+    exits = [first_exit(d.weather_table(), hull) for _, d in in_odd_drives(scale, 32, 0)]
+    measured = line["in_odd"]["measured"]
+    assert measured["hours"] == pytest.approx(sum(20.0 if e is None else e.time_s for e in exits) / 3600)
+    assert line["in_odd"]["left_hull"] == sum(e is not None for e in exits)
+    assert measured["low"] <= measured["per_hour"] <= measured["high"]
+    assert line["in_odd"]["stated"]["windows"] > 0
+    records = [json.loads(r)["record"] for r in (tmp_path / "exits.jsonl").read_text().splitlines()]
+    drives = exit_drives(scale, 32, 0, hull)
+    assert [d.kind for d in drives] == ["fog", "dusk"] and len(records) == 2
+    for d, r in zip(drives, records, strict=True):
+        first = first_exit(d.drive.weather_table(), hull)
+        assert r["exit_s"] == pytest.approx(first.time_s) and r["exit_parameters"] == list(first.parameters)
+        assert r["exit_s"] <= 30.0  # out by the ramp's end at the latest (tiny sources may not reach their faces)
+        if r["exit_s"] > 20.0:  # left during the ramp: by the ramped parameter
+            assert r["exit_parameters"] == [{"fog": "fog_density", "dusk": "sun_altitude_angle"}[d.kind]]
+    kinds = line["exits"]["kinds"]
+    assert set(kinds) == {"fog+30", "dusk-30"} and all(k["left"] == 1 for k in kinds.values())
+    hour = line["hour"]
+    assert hour["frames"] == 200 and hour["truth"]["exit_s"] is None
+    assert 0 < hour["max_rss_bytes"] < 2e9 and hour["cpu_seconds"] > 0 and hour["realtime_factor"] > 0
+    lines = {p.name: p.read_text() for p in tmp_path.glob("*.jsonl")}
+    again = main(args)
+    assert {p.name: p.read_text() for p in tmp_path.glob("*.jsonl")} == lines  # nothing watched again
+    for mode in ("in_odd", "exits"):
+        assert again[mode] | {"sources_seconds_so_far": None} == line[mode] | {"sources_seconds_so_far": None}
+    assert again["hour"] == line["hour"]
+
+
+def test_bench_watch_reads_sources_once_with_the_watchs_own_numbers(watch_registry, tmp_path) -> None:
+    """With ``SourcesOnce`` two watches read the sources and calibrate once (``prepare_sources``), and give the same
+    tables, to the bit, as a watch that reads them itself."""
+    from benchmarks.bench_watch import SourcesOnce, in_odd_drives, parse, render_sources, source_drives, watch_drive
+    from components.export.lookup import load_registered
+    from components.watch.settings import WatchOptions
+
+    args = parse(["in-odd", *TINY_WATCH])
+    options = WatchOptions(**dict(args.set))
+    sources = render_sources(source_drives(24.0, 32, 0), tmp_path / "sources", progress=False)
+    model = load_registered("champion", watch_registry)
+    _, drive = in_odd_drives(args.scale, 32, 0)[0]
+    plain = watch_drive(model, drive, sources, options, tmp_path)
+    once = SourcesOnce()
+    first = watch_drive(model, drive, sources, options, tmp_path, once)
+    second = watch_drive(model, drive, sources, options, tmp_path, once)
+    assert len(once.prepared) == 1 and once.seconds["prepare_sources"] > 0
+    for result in (first, second):
+        assert result.windows.keys() == plain.windows.keys()
+        for key, column in plain.windows.items():
+            np.testing.assert_array_equal(result.windows[key], column, err_msg=key)
+        np.testing.assert_array_equal(result.frames["fog_density_median"], plain.frames["fog_density_median"])
+        assert result.stated == plain.stated

@@ -106,6 +106,23 @@ def _wait_for_flow_run_processes(worker: subprocess.Popen, timeout: float = 60) 
         time.sleep(0.5)
 
 
+def _start_worker(pool: str, folder: Path, env: dict) -> tuple[subprocess.Popen, Path]:
+    """A `process` worker of ``pool`` started in ``folder``/worker (its own session, so that :func:`_stop` can end
+    it and its flow runs), logging to ``folder``/worker.log."""
+    (folder / "worker").mkdir()
+    worker_log = folder / "worker.log"
+    with open(worker_log, "wb") as log:
+        worker = subprocess.Popen(
+            [sys.executable, "-m", "prefect", "worker", "start", "--pool", pool],
+            cwd=folder / "worker",
+            env=env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+    return worker, worker_log
+
+
 def _stop(proc: subprocess.Popen) -> None:
     """Stop the worker and every process it started (flow runs get their own process groups)."""
     children = _descendants(proc)
@@ -187,7 +204,7 @@ def test_prefect_yaml_deployments_monitor_on_a_process_worker(monitored_project,
     spec = yaml.safe_load((PROJECT_ROOT / "prefect.yaml").read_text())
     project = monitored_project.resolve()
     assert (project / "prefect.yaml").read_text() == (PROJECT_ROOT / "prefect.yaml").read_text()
-    wanted = spec["deployments"]
+    wanted = [d for d in spec["deployments"] if d["name"] != WATCH_DEPLOYMENT]  # the watch: the test below
     assert {d["entrypoint"] for d in wanted} == {"flows/monitor.py:monitor"}
     assert sorted(d["parameters"]["models"] for d in wanted) == ["all", "champion"]
     pools = {d["work_pool"]["name"] for d in wanted}
@@ -213,17 +230,7 @@ def test_prefect_yaml_deployments_monitor_on_a_process_worker(monitored_project,
         "PREFECT_WORKER_QUERY_SECONDS": "1",
     }
     worker_env.pop("PIDC_PROJECT", None)
-    (tmp_path / "worker").mkdir()
-    worker_log = tmp_path / "worker.log"
-    with open(worker_log, "wb") as log:
-        worker = subprocess.Popen(
-            [sys.executable, "-m", "prefect", "worker", "start", "--pool", pool],
-            cwd=tmp_path / "worker",
-            env=worker_env,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
+    worker, worker_log = _start_worker(pool, tmp_path, worker_env)
     try:
         # deploy as docs/monitoring.md does, from the project root with PIDC_PROJECT set
         _prefect(["deploy", "--all", "--no-prompt"], project, {**env, "PIDC_PROJECT": str(project)})
@@ -344,3 +351,184 @@ def test_prefect_yaml_deployments_monitor_on_a_process_worker(monitored_project,
     flow_runs = [r for r in records if script in r["modules"].values()]
     assert len(flow_runs) >= len(run_ids), [sorted(r["modules"]) for r in records]
     assert all(r["cwd"] == str(project) and {"components", "flows"} <= set(r["modules"]) for r in flow_runs), flow_runs
+
+
+# --- the watch of a folder of drives (flows/watch.py, deployment watch-drives) -------------------------------------
+
+WATCH_DEPLOYMENT = "watch-drives"
+#: the watch's settings for drives of seconds at 10 frames/s (the defaults are for drives of minutes): windows of 1 s
+#: every 0.2 s, blocks of 4 s, the threshold at α = 0.02 (the largest of the 64 calibration windows' gaps), an alarm
+#: after 5 consecutive flagged windows
+WATCH_SETTINGS = {"window": 10, "stride": 2, "block": 40, "false_alarm_rate": 0.02, "consecutive": 5}
+#: the sources (two days walking fast over their boxes, 32 s each) and the drives' box (inside the clear day's)
+WATCH_CLEAR = {"cloudiness": (0, 30), "fog_density": (0, 10), "sun_altitude_angle": (40, 70), "wind_intensity": (0, 30)}
+WATCH_CLOUDY = WATCH_CLEAR | {"cloudiness": (60, 95), "precipitation": (0, 30)}
+WATCH_INSIDE = {"cloudiness": (5, 25), "fog_density": (2, 8), "sun_altitude_angle": (45, 65), "wind_intensity": (5, 25)}
+DRIVE_SECONDS = 20.0
+
+
+def _watched_world(project: Path, root: Path) -> dict[str, Path]:
+    """Two source drives and a folder of two drives, rendered at the project's image size: ``inside`` walks inside the
+    clear day's box; ``fog`` is the same kind of drive in dense fog (95 %) on every frame."""
+    from components.simulate.drive import Drive, write_folder
+
+    sim = load_params(project / "params.yaml").simulator
+    assert sim.height == sim.width, "drives are square"
+    size = sim.height
+    inside = {"box": WATCH_INSIDE, "correlation_s": 10.0, "size": size, "seconds": DRIVE_SECONDS}
+    fog = inside | {"box": {k: v for k, v in WATCH_INSIDE.items() if k != "fog_density"}, "held": {"fog_density": 95.0}}
+    return {
+        "clear": write_folder(
+            Drive(seconds=32, seed=11, size=size, box=WATCH_CLEAR, correlation_s=3.0), root / "clear"
+        ),
+        "cloudy": write_folder(
+            Drive(seconds=32, seed=12, size=size, box=WATCH_CLOUDY, correlation_s=3.0), root / "cloudy"
+        ),
+        "inside": write_folder(Drive(seed=13, **inside), root / "drives" / "inside"),
+        "fog": write_folder(Drive(seed=14, **fog), root / "drives" / "fog"),
+    }
+
+
+def _flow_run_logs(api: httpx.Client, run_id: str, until: str, timeout: float = 30) -> str:
+    """The log lines of a flow run, once a line holding ``until`` has arrived (a run's logs are sent in batches)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        logs = api.post(
+            "/logs/filter", json={"logs": {"flow_run_id": {"any_": [run_id]}}, "sort": "TIMESTAMP_ASC", "limit": 200}
+        ).raise_for_status()
+        text = "\n".join(entry["message"] for entry in logs.json())
+        if until in text or time.monotonic() > deadline:
+            return text
+        time.sleep(0.5)
+
+
+@pytest.mark.slow
+def test_watch_drives_deployment_fails_naming_the_drive_that_left_the_odd(monitored_project, prefect_server, tmp_path):
+    """The deployment watch-drives on a process worker: the first run watches both drives, logs an MLflow run each and
+    ends FAILED naming the fog drive; a second run finds nothing new, skips both and completes.
+
+    It cannot pass by chance: the same rule must alarm on one drive and stay silent on the other, so neither a watch
+    that always alarms nor one that never does passes, and an uninformative model (whose fog windows would look like
+    the sources') fails. The fog drive is far outside the sources (fog 95 % on every frame against ≤ 10 %): with this
+    weak model (cues on 2 000 images of 32×32 pixels) every one of its windows has a relative gap above 0.999 against
+    a threshold of 0.28, and fog's W₁ is 13 times its in-ODD level (cloudiness, second, 1.8 times). The in-ODD drive's
+    windows stayed below the threshold but for one in 20 seconds (at most two consecutive ones over twelve such drives
+    of other seeds, measured), and an alarm needs five."""
+    deployments = yaml.safe_load((PROJECT_ROOT / "prefect.yaml").read_text())["deployments"]
+    spec = next(d for d in deployments if d["name"] == WATCH_DEPLOYMENT)
+    assert spec["entrypoint"] == "flows/watch.py:watch_folder"
+    assert set(spec["parameters"]) == {"folder", "sources"} and isinstance(spec["parameters"]["sources"], list)
+    assert [s["interval"] for s in spec["schedules"]] == [600]
+    project = monitored_project.resolve()
+    world = _watched_world(project, tmp_path / "world")
+    pool = spec["work_pool"]["name"]
+
+    path = os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
+    env = {**os.environ, "PREFECT_API_URL": prefect_server, "PATH": path}
+    env.pop("PYTHONPATH", None)
+    _prefect(["work-pool", "create", pool, "--type", "process", "--overwrite"], tmp_path, env)
+    worker_env = {**env, "PREFECT_WORKER_QUERY_SECONDS": "1"}
+    worker_env.pop("PIDC_PROJECT", None)  # the worker knows nothing of the project
+    worker, worker_log = _start_worker(pool, tmp_path, worker_env)
+    parameters = {
+        "folder": str(world["inside"].parent),
+        "sources": [str(world["clear"]), str(world["cloudy"])],
+        **WATCH_SETTINGS,
+    }
+    try:
+        _prefect(["deploy", "--name", WATCH_DEPLOYMENT, "--no-prompt"], project, {**env, "PIDC_PROJECT": str(project)})
+        with httpx.Client(base_url=prefect_server, timeout=30) as api:
+            found = api.post("/deployments/filter", json={"deployments": {"name": {"any_": [WATCH_DEPLOYMENT]}}})
+            (deployed,) = found.raise_for_status().json()
+            assert deployed["entrypoint"] == spec["entrypoint"] and deployed["work_pool_name"] == pool
+            assert deployed["parameters"] == spec["parameters"]
+            (schedule,) = deployed["schedules"]
+            assert schedule["schedule"]["interval"] == 600 and schedule["active"]
+            # paused, so that no scheduled run (of the template's folder) comes between the runs triggered here
+            api.patch(f"/deployments/{deployed['id']}/schedules/{schedule['id']}", json={"active": False})
+            pending = api.post(
+                "/flow_runs/filter",
+                json={
+                    "deployments": {"id": {"any_": [deployed["id"]]}},
+                    "flow_runs": {"state": {"type": {"any_": ["SCHEDULED"]}}},
+                },
+            ).raise_for_status()
+            for run in pending.json():
+                api.delete(f"/flow_runs/{run['id']}").raise_for_status()
+
+            def trigger() -> str:
+                args = ["deployment", "run", f"watch/{WATCH_DEPLOYMENT}", "--params", json.dumps(parameters)]
+                out = _prefect(args, project, env)
+                found = re.search(r"UUID: ([0-9a-f-]{36})", out)
+                assert found, out
+                return found.group(1)
+
+            first_id = trigger()
+            first = _wait_until_final(api, first_id, worker_log, "FAILED")
+            second_id = trigger()
+            second = _wait_until_final(api, second_id, worker_log, "COMPLETED")
+            _wait_for_flow_run_processes(worker)
+            # the flow's last line: "<n> drive(s) watched, <m> skipped; …"
+            first_logs, second_logs = (_flow_run_logs(api, i, "drive(s) watched") for i in (first_id, second_id))
+    finally:
+        _stop(worker)
+
+    # the first run: FAILED, naming the fog drive, its first alarm (at the earliest the rule can fire: the end of its
+    # 5th window, every window flagged) and its cause; not the drive that stayed inside
+    length, stride, k = WATCH_SETTINGS["window"], WATCH_SETTINGS["stride"], WATCH_SETTINGS["consecutive"]
+    fired = (length - 1 + (k - 1) * stride) / 10.0
+    message = first["state"]["message"]
+    assert (
+        "DrivesLeftOdd" in message
+        and f"1 of 2 drives left the ODD of the sources: fog at {fired:.1f} s (fog_density" in message
+    ), message
+    assert "inside" not in message, message
+    assert "inside: 200 frames, 0 alarms" in first_logs and "fog: 200 frames, 1 alarm(s): LEFT THE ODD" in first_logs
+
+    params = load_params(project / "params.yaml")
+    client = mlflow.MlflowClient(tracking_uri=f"sqlite:///{project / 'mlflow.db'}")
+    version = str(client.get_model_version_by_alias(params.export.registered_model, "champion").version)
+    out = project / "reports" / "watch"
+    for name, outside in (("inside", False), ("fog", True)):
+        summary = json.loads((out / name / "summary.json").read_text())
+        assert summary["drive"]["frames"] == 200 and summary["model"] == "cues-2000"
+        assert summary["watched"]["model"] == {
+            "uri": "models:/pidc@champion",
+            "name": params.export.registered_model,
+            "version": version,
+            "id": "cues-2000",
+        }
+        assert summary["watched"]["prefect_flow_run"] == first_id
+        assert {k: summary["settings"][k] for k in WATCH_SETTINGS} == WATCH_SETTINGS
+        assert (out / name / "timeline.png").stat().st_size > 10_000
+        assert len((out / name / "frames.csv").read_text().splitlines()) == 201
+        if outside:
+            assert summary["first_alarm_s"] == pytest.approx(fired) and len(summary["alarms"]) == 1
+            assert summary["alarms"][0]["cause"][0] == "fog_density"
+            assert summary["truth"]["exit_s"] == 0.0 and summary["truth"]["exit_parameters"] == ["fog_density"]
+        else:
+            assert summary["alarms"] == [] and summary["truth"]["exit_s"] is None
+    assert "fog: watched already" in second_logs and "inside: watched already" in second_logs
+    assert "0 drive(s) watched, 2 skipped" in second_logs
+
+    # one MLflow run per drive, all of the first flow run: the second logged none
+    experiment = client.get_experiment_by_name("pidc-watch")
+    runs = {r.info.run_name: r for r in client.search_runs([experiment.experiment_id])}
+    assert sorted(runs) == ["fog", "inside"]
+    for name, run in runs.items():
+        outside = name == "fog"
+        tags, metrics = run.data.tags, run.data.metrics
+        assert tags["pidc.drive"] == name and tags["pidc.prefect_flow_run"] == first_id
+        assert tags["pidc.outside"] == str(outside).lower() and tags["pidc.registered_version"] == version
+        assert run.info.status == ("FAILED" if outside else "FINISHED")
+        assert run.data.params["model_version"] == version and run.data.params["sources"] == "clear, cloudy"
+        assert run.data.params["settings.consecutive"] == str(k)
+        assert metrics["alarms"] == (1 if outside else 0) and metrics["frames"] == 200
+        assert metrics["realtime_factor"] > 0
+        assert ("first_alarm_s" in metrics) == outside
+        assert {a.path for a in client.list_artifacts(run.info.run_id)} == {"summary.json", "timeline.png"}
+        logged = json.loads(Path(client.download_artifacts(run.info.run_id, "summary.json", str(tmp_path))).read_text())
+        assert logged == json.loads((out / name / "summary.json").read_text())
+        assert logged["watched"]["mlflow_run"] == run.info.run_id
+    assert second["state"]["type"] == "COMPLETED"
+    assert _dvc_status(project) == "Data and pipelines are up to date."

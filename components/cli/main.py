@@ -197,6 +197,12 @@ def build_parser() -> argparse.ArgumentParser:
     from components.cli.record import add_record_command
 
     add_record_command(sub)
+    from components.cli.drive import add_drive_command
+
+    add_drive_command(sub)
+    from components.cli.watch import add_watch_command
+
+    add_watch_command(sub)
     return parser
 
 

@@ -228,10 +228,12 @@ def add_drive_command(sub: Any) -> None:
         help="a new or empty folder (OUT/000000.png…, times.csv, weather.csv, drive.json), or a video OUT.avi "
         "(MJPG), .mp4 (mp4v) or .mkv (FFV1, lossless) with OUT.weather.csv and OUT.drive.json beside it",
     )
-    p.add_argument("--seconds", type=float, default=60.0, help="the drive's length, seconds (default 60)")
-    p.add_argument("--fps", type=float, default=DRIVE_DEFAULTS["fps"], help="frames per second (default 10)")
+    p.add_argument("--seconds", type=float, default=60.0, help="the drive's length, seconds (default %(default)g)")
+    p.add_argument("--fps", type=float, default=DRIVE_DEFAULTS["fps"], help="frames per second (default %(default)g)")
     p.add_argument("--seed", type=int, help="seed (required) of the walk and the scenes: same seed, same drive")
-    p.add_argument("--size", type=int, default=int(DRIVE_DEFAULTS["size"]), help="image side, pixels (default 128)")
+    p.add_argument(
+        "--size", type=int, default=int(DRIVE_DEFAULTS["size"]), help="image side, pixels (default %(default)s)"
+    )
     p.add_argument(
         "--box",
         action="append",
@@ -250,7 +252,7 @@ def add_drive_command(sub: Any) -> None:
         type=float,
         default=DRIVE_DEFAULTS["correlation_s"],
         metavar="TAU",
-        help="the walk's correlation time, seconds (default 30)",
+        help="the walk's correlation time, seconds (default %(default)g)",
     )
     p.add_argument(
         "--event",
@@ -264,6 +266,6 @@ def add_drive_command(sub: Any) -> None:
         type=float,
         default=DRIVE_DEFAULTS["scene_seconds"],
         metavar="S",
-        help="seconds per scene: the car reaches a new scene (map, camera, traffic) every S seconds (default 1)",
+        help="seconds per scene: the car reaches a new scene (map, camera, traffic) every S seconds (default %(default)g)",
     )
     p.set_defaults(func=cmd_drive)

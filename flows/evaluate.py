@@ -10,7 +10,8 @@ parameter (:mod:`components.evaluate.marginals`) interval widths and coverage, m
 gain, for all, day and night truths. Writes ``reports/task1/`` (:mod:`components.evaluate.publish`): ``metrics.json``
 (model → headline metrics), ``models/<model>.json`` (one flat row per model: the DVC metrics), ``parameters.json``
 (model → subset → parameter → figures), ``profiles.json`` (the same by bin of the true value,
-:mod:`components.evaluate.profile`), ``coverage.json``, ``table.md`` (the results table) and PNG plots; logs
+:mod:`components.evaluate.profile`), ``local.json`` (model → the named weathers' coverage beside an exact toy's and the
+local test L-C2ST, :mod:`components.evaluate.named`), ``coverage.json``, ``table.md`` (the results table) and PNG plots; logs
 them to each model's MLflow run; names the champion (:mod:`components.evaluate.champion`): MLflow aliases ``champion``
 and ``challenger`` (the runner-up) and the pointer ``reports/task1/champion.json`` (written before the aliases move: a
 kill between the two leaves the aliases behind the pointer, never ahead of it).
@@ -39,7 +40,7 @@ from components.core.code import code_fingerprint
 from components.core.config import Params
 from components.core.files import sha256_file
 from components.core.paths import ProjectPaths
-from components.evaluate import evaluation, publish, task1
+from components.evaluate import evaluation, named, publish, task1
 from components.evaluate.champion import NoChampionError, champion_pointer, choose_champion
 from components.export.lookup import CHAMPION_POINTER
 from components.features import cache as features
@@ -61,7 +62,7 @@ EVALUATION_LIBRARIES = (
     "torch",
 )
 #: The keys of a model's result (what :func:`_evaluate_into` returns and the flow reads).
-RESULT_KEYS = ("model", "metrics", "coverage", "pi", "parameters", "profiles")
+RESULT_KEYS = ("model", "metrics", "coverage", "pi", "parameters", "profiles", "local")
 
 
 def _library(dist: str) -> str:
@@ -112,7 +113,7 @@ def evaluation_key(
     so that a kept one is reused only when nothing it depends on has changed — the model (sha256 of its card, which
     records its graphs' sha256), the test data (content hash) and the features read, the ``evaluate`` settings but
     the runner, the number of images and the calibration band, the seed, the prior box, the simulator (the PPC
-    re-renders) and the code (:func:`evaluation_code`)."""
+    re-renders), the contents of the recorded named weathers' folders and the code (:func:`evaluation_code`)."""
     card_file = paths.registry / model_id / "card.json"
     backbone = json.loads(card_file.read_text())["backbone"]
     parts = {
@@ -126,6 +127,11 @@ def evaluation_key(
         "seed": params.seed,
         "prior": params.model_dump(mode="json", include={"prior"})["prior"],
         "simulator": params.simulator.model_dump(mode="json"),
+        # a recorded named weather's images (DVC does not track the folders: their contents key the evaluation)
+        "named_folders": {
+            name: named.folder_fingerprint(paths.root / folder)
+            for name, folder in params.evaluate.named.folders.items()
+        },
         "code": code,
     }
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest(), parts
@@ -180,6 +186,8 @@ def _results(stage: Stage, test: dataset.Split, n: int, band: float) -> tuple[li
     code = evaluation_code()
     keyed = {m: evaluation_key(params, paths, m, test, n, band, code) for m in ids}
     reused = {m: r for m in ids if (r := reuse_kept(paths, m, keyed[m][0], stage.logger)) is not None}
+    if len(reused) < len(ids):
+        evaluation.named_renders(params, paths)  # rendered once here, read by every model's task
     share_api_with_workers()
     done = at_most(
         params.evaluate.runner.workers,

@@ -15,7 +15,9 @@ It reads what the pipeline's stages write (``bash run.sh`` or ``dvc repro`` firs
 * ``reports/task3/metrics.json`` (the ``task3`` stage: :func:`components.domains.task3.task3_metrics`);
 * ``reports/task1/parameters.json`` and ``reports/task1/profiles.json`` (the evaluate stage: model → subset →
   parameter → figures, :func:`components.evaluate.marginals.summarize_subsets`, and the same by bin of the true value,
-  :func:`components.evaluate.profile.truth_profile`).
+  :func:`components.evaluate.profile.truth_profile`);
+* ``reports/task1/local.json`` (the evaluate stage: model → the named weathers and the local test,
+  :mod:`components.evaluate.named`).
 
 Each target file holds blocks between markers, ``<!-- NAME:begin -->`` and ``<!-- NAME:end -->``; the script
 replaces what lies between them and leaves the rest of the file alone:
@@ -29,6 +31,8 @@ replaces what lies between them and leaves the rest of the file alone:
 * ``champion-parameters``: the champion's daytime median errors against :data:`DAY_TARGETS`, its night coverage
   against :data:`NIGHT_COVERAGE`, and its sun error by bin of the true altitude;
 * ``task2``: Task II's figures, with the width floor's comparison and its bootstrap intervals;
+* ``named``: the champion at the named weathers (``reports/task1/local.json``): pooled coverage beside the exact
+  toy's, the cells outside a correct model's range, the local test, the sun at ClearNoon; a line per model;
 * ``task3``: Task III's AUCs by η and kind, the first η meeting :data:`AUC_TARGET` at 95 % confidence, and the
   out-of-ODD decision's false alarms against the range a calibrated decision gives;
 * ``targets``: every target the reports can judge (:func:`targets`), met or missed, with its figure.
@@ -61,6 +65,7 @@ REPORTS: dict[str, str] = {
     "task3": "task3/metrics.json",
     "parameters": "task1/parameters.json",
     "profiles": "task1/profiles.json",
+    "local": "task1/local.json",
 }
 #: a model id of the grid, ``<backbone>-<size>``, or of its variants, ``<backbone>-<size>-<name>``
 MODEL_ID = re.compile(r"^(?P<backbone>.+?)-(?P<size>\d+)(?:-(?P<variant>[a-z][a-z0-9_]*))?$")
@@ -222,8 +227,42 @@ def task3_line(task3: Mapping) -> str:
     )
 
 
+def named_line(reports: Mapping[str, object]) -> str | None:
+    """The champion at the named weathers in one line (``reports/task1/local.json``): the pooled 68 % coverage's range
+    over the parameters beside the exact toy's, the cells below or above a correct model's range, the joint local
+    test on the named images, the sun at ClearNoon; None when they were not evaluated."""
+    model, _, _ = _champion_and_metrics(reports)
+    where = "reports/task1/local.json"
+    local = _local(reports, model)
+    if "skipped" in local:
+        return None
+    rows = _get(local, ("weathers",), where)
+    pooled = _get(local, ("pooled", "all", "parameters"), where).values()
+    cov = [float(p["coverage68"]) for p in pooled]
+    toy = [float(p["toy68"]) for p in pooled]
+    cells = [c for r in rows for c in r["parameters"].values()]
+    lc = _get(local, ("lc2st",), where)
+    joint = _get(lc, ("named", "joint"), where)
+    noon = [r for r in rows if r["weather"] == "ClearNoon"]
+    sun = (
+        f"; it reads the sun at ClearNoon to {_number(float(noon[0]['parameters']['sun_altitude_angle']['median_abs_error']), 2)}°"
+        if noon
+        else ""
+    )
+    return (
+        f"- **Named weathers** ({model}, {len(rows)} weathers on {sum(int(r['images']) for r in rows)} images of new "
+        f"scenes): its 68.27 % HDIs cover the truth {min(cov):.2f}–"
+        f"{max(cov):.2f} of the time per parameter, where a correct posterior of the same widths covers "
+        f"{min(toy):.2f}–{max(toy):.2f}; {sum(bool(c['below']) for c in cells)} of {len(cells)} weather × parameter "
+        f"cells lie below a correct model's range, {sum(bool(c['above']) for c in cells)} above; the local test "
+        f"(L-C2ST, level {float(_get(lc, ('level',), where)):g}) rejects {_number(float(joint['rate']), 3)} of the "
+        f"named images (p {_number(float(joint['p_value']), 3)}){sun}."
+    )
+
+
 def results_block(reports: Mapping[str, object]) -> str:
-    """The ``results`` block: a sentence on the test split, the models' table, Task II's and Task III's lines."""
+    """The ``results`` block: a sentence on the test split, the models' table, Task II's and Task III's lines, and
+    the champion at the named weathers (:func:`named_line`) when they were evaluated."""
     metrics = reports["task1"]
     champion = reports["champion"]
     if not isinstance(metrics, Mapping) or not isinstance(champion, Mapping) or "model" not in champion:
@@ -243,9 +282,9 @@ def results_block(reports: Mapping[str, object]) -> str:
     rule = champion.get("rule")
     chosen = RULE_TEXT.get(str(rule), f"rule `{rule}`")
     head = f'Task I on the test split{split}; the champion is {chosen} (`champion.json`: `"rule": "{rule}"`):'
-    return "\n".join(
-        [head, "", *task1_table(metrics, champion), "", task2_line(reports["task2"]), task3_line(reports["task3"])]
-    )
+    named = named_line(reports)
+    lines = [head, "", *task1_table(metrics, champion), "", task2_line(reports["task2"]), task3_line(reports["task3"])]
+    return "\n".join(lines if named is None else [*lines, named])
 
 
 #: the champion's targets: information gain (nats) at least, test NLL at most, calibration error at most (and within
@@ -261,6 +300,8 @@ DAY_TARGETS: dict[str, float] = {
     "sun_altitude_angle": 3.0,
     "precipitation_deposits": 6.0,
 }
+#: the champion's median error of the sun at CARLA's ClearNoon (a 45° sun under a clear sky), degrees
+CLEAR_NOON_SUN = 5.0
 #: the range the champion's central 68 % intervals must cover the truth in at night, every marginal
 NIGHT_COVERAGE: tuple[float, float] = (0.63, 0.73)
 #: Task III: the AUC a kind of target must reach, at 95 % confidence (its interval's lower end)
@@ -709,6 +750,66 @@ TASK2_TARGETS: dict[str, float] = {"energy_ratio": 0.3, "wasserstein_ratio": 0.3
 AUC_FROM_ETA = 0.3
 
 
+def _local(reports: Mapping[str, object], model: str) -> Mapping:
+    where = "reports/task1/local.json"
+    return _get(reports["local"], (model,), where)
+
+
+def _set_test(t: Mapping, where: str) -> str:
+    lo, hi = _get(t, ("null_range",), where)
+    rate, p = float(_get(t, ("rate",), where)), float(_get(t, ("p_value",), where))
+    return f"{_number(rate, 3)} (the null's 95 % range {_number(lo, 3)}–{_number(hi, 3)}, p {_number(p, 3)})"
+
+
+def named_block(reports: Mapping[str, object]) -> str:
+    """The ``named`` block: the champion at the named weathers (``reports/task1/local.json``) — the pooled 68 %
+    coverage per parameter beside the exact toy's, the cells outside a correct model's range, the joint L-C2ST on
+    the named images and on test images, the sun at ClearNoon — then one line per model."""
+    model, _, metrics = _champion_and_metrics(reports)
+    where = "reports/task1/local.json"
+    local = _local(reports, model)
+    if "skipped" in local:
+        return f"The named weathers were not evaluated: {local['skipped']}."
+    rows = _get(local, ("weathers",), where)
+    pooled = _get(local, ("pooled", "all", "parameters"), where)
+    lc = _get(local, ("lc2st",), where)
+    level = float(_get(lc, ("level",), where))
+    images = sum(int(r["images"]) for r in rows)
+    cells = [c for r in rows for c in r["parameters"].values()]
+    below, above = sum(bool(c["below"]) for c in cells), sum(bool(c["above"]) for c in cells)
+    cov = ", ".join(
+        f"{_short(n)} {_number(v['coverage68'], 2)} [{_number(v['ci68'][0], 2)}, {_number(v['ci68'][1], 2)}] "
+        f"(toy {_number(v['toy68'], 2)})"
+        for n, v in pooled.items()
+    )
+    lines = [
+        f"The champion ({model}) at {len(rows)} named weathers ({images} images of new scenes, "
+        "[how to read it](named-weathers.md)): its 68.27 % HDIs cover the truth, pooled, "
+        f"{cov}: an exact posterior on a toy with the same faces and widths in parentheses. "
+        f"{below} of {len(cells)} weather × parameter cells lie below the 95 % range of a correct model's coverage, "
+        f"{above} above (a correct model: about {round(0.05 * len(cells))} in all).",
+        f"The local test (L-C2ST, joint, level {level:g}) rejects {_set_test(_get(lc, ('named', 'joint'), where), where)}"
+        f" of the named images and {_set_test(_get(lc, ('test', 'joint'), where), where)} of "
+        f"{_get(lc, ('test_images',), where)} test images.",
+    ]
+    noon = [r for r in rows if r["weather"] == "ClearNoon"]
+    if noon:
+        e = float(noon[0]["parameters"]["sun_altitude_angle"]["median_abs_error"])
+        lines[-1] += f" At ClearNoon (a 45° sun under a clear sky) it reads the sun to {_number(e, 2)}°."
+    table = ["", "| model | pooled 68 % coverage (mean) | cells below · above | L-C2ST named (p) | L-C2ST test (p) |"]
+    table.append("|---|---:|---:|---:|---:|")
+    for m in metrics:
+        v = metrics[m]
+        if "named_weathers" not in v or v["named_weathers"] != v["named_weathers"]:  # NaN: skipped
+            continue
+        table.append(
+            f"| {m} | {_number(v['named_coverage68'], 3)} | {int(v['named_cells_below'])} · "
+            f"{int(v['named_cells_above'])} | {_number(v['lc2st_named_rate'], 3)} ({_number(v['lc2st_named_p'], 3)}) "
+            f"| {_number(v['lc2st_test_rate'], 3)} ({_number(v['lc2st_test_p'], 3)}) |"
+        )
+    return "\n".join([" ".join(lines), *table])
+
+
 def targets(reports: Mapping[str, object]) -> list[tuple[str, bool, str]]:
     """Every target the reports can judge, as ``(what, met, the figure against the target)``, in the page's order."""
     model, _, metrics = _champion_and_metrics(reports)
@@ -741,6 +842,23 @@ def targets(reports: Mapping[str, object]) -> list[tuple[str, bool, str]]:
     for n in _get(p, ("night",), w2):
         c = float(_get(p, ("night", n, "coverage68"), w2))
         out.append((f"the night coverage of {_short(n)}", low <= c <= high, f"{_pct(c)} %, target {span}"))
+    local = _local(reports, model)
+    if "skipped" not in local:
+        w5 = "reports/task1/local.json"
+        lc = _get(local, ("lc2st",), w5)
+        level, t = float(_get(lc, ("level",), w5)), _get(lc, ("named", "joint"), w5)
+        p_named = float(_get(t, ("p_value",), w5))
+        out.append(
+            (
+                "the local test at the named weathers",
+                p_named > level,
+                f"rate {_number(float(t['rate']), 3)}, set p {_number(p_named, 3)}; target p > {level:g}",
+            )
+        )
+        noon = [r for r in _get(local, ("weathers",), w5) if r["weather"] == "ClearNoon"]
+        if noon:
+            e = float(noon[0]["parameters"]["sun_altitude_angle"]["median_abs_error"])
+            out.append(("the sun at ClearNoon", e <= CLEAR_NOON_SUN, f"{_number(e, 2)}°, target ≤ {CLEAR_NOON_SUN:g}°"))
     wind = float(_get(p, ("all", "wind_intensity", "coverage68"), w2))
     out.append(("wind's over all images", low <= wind <= high, f"{_pct(wind)} %, target {span}"))
     worst = max(metrics, key=lambda n: float(_get(metrics[n], ("calibration_error",), w1)))
@@ -831,6 +949,7 @@ BLOCKS: dict[str, Callable[[Mapping[str, object]], str]] = {
     "champion-parameters": champion_parameters_block,
     "task2": task2_block,
     "task3": task3_block,
+    "named": named_block,
     "targets": targets_block,
 }
 

@@ -41,6 +41,13 @@ def micro_params(**overrides) -> dict:
     p["train"]["scale_to"] = 8  # no small-data scaling of epochs and widths: the micro models train for seconds
     p["train"]["variants"] = {"balanced": {"backbone": "cues", "size": 16, "balance": 10.0, "ensemble": 1}}
     p["evaluate"].update(images=8, samples=400, ppc_images=1, ppc_renders=2, example_images=1)
+    p["evaluate"]["named"].update(presets="none", scenes=2, draws=400, toy_images=24)  # two own weathers
+    p["evaluate"]["named"]["weathers"] = {
+        k: p["evaluate"]["named"]["weathers"][k] for k in ("pidc:ClearHighSun", "pidc:StormNoon")
+    }
+    p["evaluate"]["named"]["local_test"].update(
+        calibration_images="all", summary_draws=8, test_draws=50, steps=20, null_trials=19, test_images="all"
+    )
     p["export"]["champion_max_calibration_error"] = 1.0  # models trained for seconds are not calibrated: any may win
     # the deconvolved estimate (not the default) so that its path through the stage runs too
     p["task2"].update(

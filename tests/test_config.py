@@ -184,6 +184,9 @@ MISSING = [
     "train.ensemble_min_size",
     "evaluate.samples",
     "evaluate.profile_bins",
+    "evaluate.named",
+    "evaluate.named.folders",
+    "evaluate.named.local_test.null_trials",
     "simulator.carla.fov",
     "monitor",
     "monitor.alarm_level",
@@ -320,6 +323,37 @@ def test_unknown_key_is_named():
             r"task2: deconvolution\.folds = 5 exceeds images = 3",
         ),
         (lambda d: d["task3"].update(etas=[0, 0.1, 0.1000001]), r"task3: etas repeats 0\.1"),
+        (
+            lambda d: d["evaluate"]["named"]["weathers"].update(
+                ClearNoon=d["evaluate"]["named"]["weathers"]["pidc:ClearLowSun"]
+            ),
+            r"evaluate\.named: .*weathers\.ClearNoon: the name of a CARLA preset",
+        ),
+        (
+            lambda d: d["evaluate"]["named"]["weathers"]["pidc:FoggyNoon"].pop("wind_intensity"),
+            r"weathers\.pidc:FoggyNoon: needs exactly the six predicted parameters .*missing \['wind_intensity'\]",
+        ),
+        (
+            lambda d: d["evaluate"]["named"]["weathers"]["pidc:FoggyNoon"].update(fog_density=120),
+            r"evaluate\.named\.weathers\.pidc:FoggyNoon\.fog_density = 120, outside the prior \[0, 100\]",
+        ),
+        (
+            lambda d: (d["prior"].update(sun_altitude_angle=[-60, 60]), d["evaluate"]["named"].update(weathers={})),
+            r"evaluate\.named\.presets: CARLA's \w+ has sun_altitude_angle = -?\d+, outside the prior \[-60, 60\] "
+            r"\(set evaluate\.named\.presets: none\)",
+        ),
+        (
+            lambda d: d["evaluate"]["named"].update(folders={"pidc:StormNoon": "x"}),
+            r"evaluate\.named: .*folders: pidc:StormNoon already name a weather",
+        ),
+        (
+            lambda d: d["evaluate"]["named"]["local_test"].update(calibration_images=7000),
+            r"evaluate\.named\.local_test\.calibration_images is 7000 but the val split has only 6000 images",
+        ),
+        (
+            lambda d: d["evaluate"]["named"]["local_test"].update(test_draws=2000),
+            r"local_test\.test_draws \(2000\) exceeds draws \(500\)",
+        ),
         (
             lambda d: d["task3"].update(calibration_targets=18),
             r"task3: calibration_targets = 18 is too few for false_alarm_rate = 0\.05: .*needs n ≥ 19",

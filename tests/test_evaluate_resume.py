@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -255,3 +256,37 @@ def test_a_damaged_kept_evaluation_is_evaluated_again(baseline, tmp_path, monkey
     assert _stamp(now[MODELS[0]]) == stamps[MODELS[0]], "the sound one reused"
     json.loads((now[MODELS[1]] / "entry.json").read_text())
     assert _reports(folder) == baseline[1]
+
+
+def test_the_named_weathers_are_rendered_once_and_read_by_every_model(baseline, tmp_path):
+    """The stage renders the named weathers once (``.cache/named/<key>.npz``) and every model reads those images: the
+    file holds what the renderer gives, a second call reads it without rendering, and another setting (more scenes)
+    renders under another key."""
+    from components.core.config import load_params
+    from components.core.paths import ProjectPaths
+    from components.evaluate import evaluation, named
+    from components.simulate.base import new_scene_simulator
+
+    folder = _copy(baseline[0], tmp_path / "named")
+    (cached,) = (folder / ".cache" / "named").glob("*.npz")
+    stamp = cached.stat().st_mtime_ns
+    params = load_params(folder / "params.yaml")
+    paths = ProjectPaths.of(params, folder / "params.yaml")
+    sets, note = evaluation.named_renders(params, paths)
+    assert note is None and cached.stat().st_mtime_ns == stamp, "read, not rendered again"
+    nc = params.evaluate.named
+    fresh = named.render_sets(
+        new_scene_simulator(params.simulator).render,
+        named.named_weathers(nc.presets, nc.weathers),
+        params.seed,
+        nc.scenes,
+    )
+    assert [s.name for s in sets] == [s.name for s in fresh] == list(nc.weathers)
+    for mine, theirs in zip(sets, fresh, strict=True):
+        assert mine.kind == theirs.kind and np.array_equal(mine.truth, theirs.truth)
+        assert np.array_equal(mine.images, theirs.images)
+    more = params.model_copy(
+        update={"evaluate": params.evaluate.model_copy(update={"named": nc.model_copy(update={"scenes": 3})})}
+    )
+    assert [len(s.images) for s in evaluation.named_renders(more, paths)[0]] == [3] * len(nc.weathers)
+    assert len(list((folder / ".cache" / "named").glob("*.npz"))) == 2

@@ -88,7 +88,61 @@ def _task1(reports) -> dict:
         profiles[model] = profile.truth_profile(scores, truth, box, params.evaluate.profile_bins)
     _write(reports / "task1" / "parameters.json", parameters)
     _write(reports / "task1" / "profiles.json", profiles)
-    return {"metrics": metrics, "pointer": pointer, "parameters": parameters, "profiles": profiles}
+    local = _local(params.box, r)
+    for model in MODELS:
+        metrics[model] |= _local_metrics(local[model])
+    _write(reports / "task1" / "metrics.json", metrics)  # the stage's metrics hold the named weathers' figures too
+    _write(reports / "task1" / "local.json", local)
+    return {"metrics": metrics, "pointer": pointer, "parameters": parameters, "profiles": profiles, "local": local}
+
+
+def _local(box, r) -> dict:
+    """reports/task1/local.json as the evaluate stage writes it: two named weathers (ClearNoon among them) of 24
+    images characterized by the exact truncated posterior of a toy (scaled 0.6: overconfident), and the L-C2ST of a
+    conjugate Gaussian fitted once (:mod:`components.evaluate.named`)."""
+    from components.core import presets, weather
+    from components.core.weather import Box
+    from components.evaluate import named
+    from components.evaluate.local import posterior_summary
+
+    sets = {"ClearNoon": weather.theta_from_weather(presets.preset_weather("ClearNoon")), "own": box.low.copy()}
+    g = np.random.default_rng(5)
+    b2 = Box(np.full(2, -8.0), np.full(2, 8.0), names=("a", "b"))
+    q = lambda x, m: x[:, None, :] / 2 + np.sqrt(0.5) * g.standard_normal((len(x), m, 2))  # noqa: E731
+    theta = g.standard_normal((300, 2))
+    x = theta + g.standard_normal((300, 2))
+    tests = named.fit_local_tests(
+        theta, posterior_summary(q(x, 8), b2), q(x, 1)[:, 0], b2, steps=20, null_trials=19, seed=1
+    )
+    xo = g.standard_normal((24, 2))
+    lc = named.local_rejections(tests, posterior_summary(q(xo, 8), b2), q(xo, 60), 0.05)
+    out = {}
+    for model in MODELS:
+        rows = []
+        for name, t in sets.items():
+            truth = np.broadcast_to(t, (24, box.dim)).copy()
+            sigma = 0.05 * box.width
+            xs = truth + sigma * g.standard_normal(truth.shape)
+            draws = named.exact_truncated_draws(xs, 0.6 * sigma, box, 400, g)
+            s = named.NamedSet(
+                name, "preset" if name == "ClearNoon" else "own", truth, np.zeros((24, 1, 1, 3), np.uint8)
+            )
+            row = named.weather_row(s, draws, box, 0.5, 48, g)
+            row["lc2st"] = {n: lc["a"] for n in box.names} | {"joint": lc["joint"]}
+            rows.append(row)
+        pooled = {k: named.pooled(rows, box, kind=k) for k in ("preset", "own")}
+        out[model] = {
+            "weathers": rows,
+            "pooled": {"all": named.pooled(rows, box), **pooled},
+            "lc2st": {"level": 0.05, "named": lc, "test": lc, "test_images": 24},
+        }
+    return out
+
+
+def _local_metrics(local: dict) -> dict:
+    from components.evaluate.evaluation import local_metrics
+
+    return local_metrics(local)
 
 
 def _task2(reports) -> dict:
@@ -481,6 +535,8 @@ def test_the_targets_block_sorts_every_target_into_met_or_missed(project):
         ("task3", "task3", ("odd", "rank"), "reports/task3/metrics.json has no rank"),
         ("task3", "task3", ("eta", "0"), r"reports/task3/metrics.json has no eta.0"),
         ("targets", "task2", ("true_mass_in_hdr",), "reports/task2/metrics.json has no true_mass_in_hdr"),
+        ("named", "local", ("cues-20000",), "reports/task1/local.json has no cues-20000"),
+        ("named", "local", ("cues-20000", "lc2st", "level"), "reports/task1/local.json has no level"),
     ],
 )
 def test_a_missing_key_names_its_report(project, block, key, path, message):
@@ -502,9 +558,55 @@ def test_a_missing_parameters_report_says_to_run_the_pipeline(project, tmp_path,
     assert "task1/parameters.json is missing" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("name", ["task1-table", "task1-champion", "champion-parameters", "task2", "task3", "targets"])
+@pytest.mark.parametrize(
+    "name", ["task1-table", "task1-champion", "champion-parameters", "task2", "task3", "named", "targets"]
+)
 def test_the_results_page_holds_every_block(name):
     """docs/results.md carries each block once, in order (an edit that loses one fails here)."""
     text = (PROJECT_ROOT / "docs" / "results.md").read_text(encoding="utf-8")
     begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
     assert text.count(begin) == 1 and text.count(end) == 1 and text.index(begin) < text.index(end)
+
+
+def test_the_results_block_ends_with_the_champion_at_the_named_weathers(project):
+    """README's line quotes the champion's pooled coverage beside the toy's, its cells and the sun at ClearNoon, and is
+    left out (not invented) when the named weathers were skipped."""
+    root, _ = project
+    reports = results_table.read_reports(root / "reports")
+    model = reports["champion"]["model"]
+    local = reports["local"][model]
+    (line,) = [line for line in results_table.results_block(reports).splitlines() if line.startswith("- **Named")]
+    cov = [p["coverage68"] for p in local["pooled"]["all"]["parameters"].values()]
+    toy = [p["toy68"] for p in local["pooled"]["all"]["parameters"].values()]
+    assert f"({model}, 2 weathers on 48 images of new scenes" in line
+    assert f"cover the truth {min(cov):.2f}–{max(cov):.2f} of the time" in line
+    assert f"covers {min(toy):.2f}–{max(toy):.2f}" in line
+    noon = local["weathers"][0]["parameters"]["sun_altitude_angle"]["median_abs_error"]
+    assert line.endswith(f"it reads the sun at ClearNoon to {noon:.2f}°.")
+    skipped = dict(reports, local={**reports["local"], model: {"skipped": "no renderer"}})
+    assert not [line for line in results_table.results_block(skipped).splitlines() if "Named" in line]
+
+
+def test_the_named_block_quotes_the_champions_weathers_and_judges_the_local_test(project):
+    reports = _reports(project)
+    model = reports["champion"]["model"]
+    local = reports["local"][model]
+    block = results_table.named_block(reports)
+    pooled = local["pooled"]["all"]["parameters"]["cloudiness"]
+    assert f"The champion ({model}) at 2 named weathers (48 images" in block
+    assert f"cloudiness {pooled['coverage68']:.2f} [{pooled['ci68'][0]:.2f}, {pooled['ci68'][1]:.2f}]" in block
+    cells = [c for r in local["weathers"] for c in r["parameters"].values()]
+    assert f"{sum(c['below'] for c in cells)} of 12 weather × parameter cells lie below" in block
+    noon = local["weathers"][0]["parameters"]["sun_altitude_angle"]["median_abs_error"]
+    assert f"it reads the sun to {noon:.2f}°" in block
+    assert [line.split(" | ")[0][2:] for line in block.splitlines() if line.startswith("| ")][1:] == list(MODELS)
+    judged = {what: (ok, figure) for what, ok, figure in results_table.targets(reports)}
+    ok, figure = judged["the sun at ClearNoon"]
+    assert ok == (noon <= 5.0) and figure == f"{noon:.2f}°, target ≤ 5°"
+    p = local["lc2st"]["named"]["joint"]["p_value"]
+    assert judged["the local test at the named weathers"][0] == (p > 0.05)
+    rejecting = _with(reports, "local", (model, "lc2st", "named", "joint", "p_value"), 0.025)
+    assert not {w: ok for w, ok, _ in results_table.targets(rejecting)}["the local test at the named weathers"]
+    skipped = dict(reports, local={**reports["local"], model: {"skipped": "no renderer"}})
+    assert results_table.named_block(skipped) == "The named weathers were not evaluated: no renderer."
+    assert "the sun at ClearNoon" not in {w for w, _, _ in results_table.targets(skipped)}

@@ -1,31 +1,29 @@
 """Named weathers: the champion's intervals, errors and local test at CARLA's presets and at conditions on the faces.
 
 A user tries named conditions (a clear noon, a hard rain at sunset), and their values sit on or near the prior box's
-faces (no rain, no fog, a full overcast). This script renders each of CARLA's 15 usable presets
-(:data:`components.core.presets.USABLE`) and the conditions of :data:`OWN` on ``--scenes`` new scenes each (scene seeds
-``derive_seed(seed, "scene", "named-weathers", name, j)``: a key path the dataset's plan cannot make, which draws
-``derive_seed(seed, "scene", split, j)`` for split train/val/test; checked disjoint from every split's seeds), with the
-procedural renderer at the pipeline's 128 × 128, and characterizes each image with a registry model (the champion by
-default: its backbone's inputs, then ``--draws`` posterior draws). Per weather × parameter it prints
+faces (no rain, no fog, a full overcast). This study runs :mod:`components.evaluate.named` (the functions the
+``evaluate`` stage runs for every model, ``reports/task1/local.json``) at CARLA's 15 usable presets
+(:data:`components.core.presets.USABLE`) and at the conditions ``evaluate.named.weathers`` of ``params.yaml``, on
+``--scenes`` new scenes each (:func:`~components.evaluate.named.scene_seeds`, checked disjoint from every split's
+seeds), with the procedural renderer at the pipeline's 128 × 128, and characterizes each image with a registry model
+(the champion by default: its backbone's inputs, then ``--draws`` posterior draws). Per weather × parameter it prints
+(:func:`~components.evaluate.named.weather_row`)
 
-- the coverage of the 68.27 % and 95 % marginal HDIs (:func:`components.evaluate.summary.hdi`, the ``pidc
-  characterize`` intervals) with their Clopper–Pearson 95 % intervals (:func:`components.evaluate.local.named_coverage`,
-  a truth on a face covered when the HDI reaches within ``--tolerance`` of it);
-- beside it the same coverage of an exact posterior on a toy with the same faces: θ uniform on the same box, x = θ +
-  σ·ε with one σ per weather × parameter taken from the champion's own 68 % HDIs there (half the median width, the
-  whole width where the interval touches a face), the posterior a normal truncated to the box, drawn and summarized
-  like the champion's (as many draws, the same HDIs and tolerance), at the same truth on ``--toy-images`` images: what
-  a correct model gives at that weather, and the 95 % range of its coverage on as many images as the champion had
-  (a champion cell outside it is marked − or +);
+- the coverage of the 68.27 % and 95 % marginal HDIs (the ``pidc characterize`` intervals) with their
+  Clopper–Pearson 95 % intervals (a truth on a face covered when the HDI reaches within ``--tolerance`` of it);
+- beside it the same coverage of an exact posterior on a toy with the same faces (θ uniform on the box, x = θ + σ·ε,
+  σ from the champion's own 68 % HDIs there, the posterior a normal truncated to the box) on ``--toy-images`` images
+  at the same truth, and the 95 % range of its coverage on as many images as the champion had (a champion cell
+  outside it is marked − or +);
 - the median absolute error of the posterior median;
-- the local test L-C2ST (:class:`components.evaluate.local.LocalTest`) at level 0.05: joint and per parameter, fitted
-  on the first ``--calibration`` images of the validation split (their cached features, their labels, one draw of
-  the model per image; x summarized by the model's own posterior medians and spreads,
-  :func:`components.evaluate.local.posterior_summary`), run at each weather's images, at all of them together and at
-  ``--test-images`` test images, each set's rejection rate beside the range the null classifiers give it under H₀,
-  and its exact p-value.
+- the local test L-C2ST (:func:`~components.evaluate.named.fit_local_tests`) at level 0.05: joint and per parameter,
+  fitted on the first ``--calibration`` images of the validation split, run at each weather's images, at all of them
+  together and at ``--test-images`` test images (the control), each set's rejection rate beside the range the null
+  classifiers give it under H₀, and its exact p-value;
+- what only this study counts: each weather's training images within ±20 % of the box in every parameter.
 
-It saves a heatmap weathers × parameters (``--figure``) and prints one JSON line with every figure and the machine.
+It saves a heatmap weathers × parameters (``--figure``, :func:`components.plots.named.named_heatmap`) and prints one
+JSON line with every figure and the machine.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/studies/bench_named_weathers.py
 """
@@ -47,140 +45,49 @@ import json  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
-from scipy.stats import binom  # noqa: E402
 
-from components.core import presets, seeding, weather  # noqa: E402
+from components.core import seeding  # noqa: E402
+from components.core.config import load_params  # noqa: E402
 from components.core.weather import SHORT_NAMES, Box  # noqa: E402
-from components.evaluate.local import (  # noqa: E402
-    Coverage,
-    LocalTest,
-    clopper_pearson,
-    named_coverage,
-    posterior_summary,
+from components.evaluate.local import Coverage, LocalTest, named_coverage, posterior_summary  # noqa: E402
+from components.evaluate.named import (  # noqa: E402
+    MASSES,
+    NamedSet,
+    check_new_scenes,
+    exact_truncated_draws,
+    fit_local_tests,
+    local_rejections,
+    named_weathers,
+    pooled,
+    render_sets,
+    weather_row,
 )
-from components.evaluate.summary import HDI_MASS, hdi  # noqa: E402
+from components.evaluate.summary import hdi  # noqa: E402
 
-#: conditions of this study, on or near the box's faces (the six predicted parameters; sun azimuth 0° as the presets)
-OWN: dict[str, dict[str, float]] = {
-    "pidc:ClearHighSun": {
-        "cloudiness": 0,
-        "fog_density": 0,
-        "precipitation": 0,
-        "sun_altitude_angle": 85,
-        "wind_intensity": 0,
-        "precipitation_deposits": 0,
-    },
-    "pidc:ClearLowSun": {
-        "cloudiness": 0,
-        "fog_density": 0,
-        "precipitation": 0,
-        "sun_altitude_angle": 3,
-        "wind_intensity": 0,
-        "precipitation_deposits": 0,
-    },
-    "pidc:FoggyNoon": {
-        "cloudiness": 30,
-        "fog_density": 95,
-        "precipitation": 0,
-        "sun_altitude_angle": 45,
-        "wind_intensity": 10,
-        "precipitation_deposits": 0,
-    },
-    "pidc:StormNoon": {
-        "cloudiness": 100,
-        "fog_density": 100,
-        "precipitation": 100,
-        "sun_altitude_angle": 45,
-        "wind_intensity": 100,
-        "precipitation_deposits": 100,
-    },
-    "pidc:ClearDeepNight": {
-        "cloudiness": 0,
-        "fog_density": 0,
-        "precipitation": 0,
-        "sun_altitude_angle": -85,
-        "wind_intensity": 0,
-        "precipitation_deposits": 0,
-    },
-}
-#: the credible masses whose HDIs are counted
-MASSES = (HDI_MASS, 0.95)
 #: L-C2ST: posterior draws per image summarizing x, draws per image of the statistic, the level
 SUMMARY_DRAWS, TEST_DRAWS, LEVEL = 64, 500, 0.05
 #: a weather's neighbourhood in the training data: within this share of the box's width in every parameter
 NEIGHBOURHOOD = 0.2
 
 
-def named_weathers() -> dict[str, dict[str, float]]:
-    """Name → complete weather (13 parameters): CARLA's usable presets, then :data:`OWN` (azimuth 0°)."""
-    out = {name: presets.preset_weather(name) for name in presets.USABLE}
-    for name, values in OWN.items():
-        out[name] = weather.complete_weather(
-            {**values, "sun_azimuth_angle": presets.PRESET_SUN_AZIMUTH}, where=f"{name}: "
-        )
-    return out
-
-
-def scene_seeds(seed: int, name: str, scenes: int) -> list[int]:
-    """The scenes of weather ``name``: ``derive_seed(seed, "scene", "named-weathers", name, j)``, j < ``scenes``."""
-    return [seeding.derive_seed(seed, "scene", "named-weathers", name, j) for j in range(scenes)]
-
-
-def exact_truncated_draws(x: np.ndarray, sigma: np.ndarray, box: Box, m: int, rng: np.random.Generator) -> np.ndarray:
-    """Draws of the exact posterior of the toy θ ~ U(box), x = θ + σ·ε (ε ~ N(0, I)): per parameter a normal of
-    mean xⱼ and scale σⱼ truncated to [lowⱼ, highⱼ], by the inverse CDF.
-
-    A standard normal truncated to [a, b] is Φ⁻¹(U(Φ(a), Φ(b))); where a > 0 it is drawn as minus its mirror image on
-    [−b, −a], so that Φ is always evaluated in its lower tail (accurate to the smallest doubles, far beyond a face).
-
-    Arguments:
-        x: ``(n, d)`` observations (unbounded).
-        sigma: ``(d,)`` the noise scales, > 0, θ's units.
-        box: the prior box (d parameters).
-        m: draws per observation.
-        rng: the draws' generator.
-
-    Returns:
-        ``(n, m, d)`` draws inside the box.
-    """
-    from scipy.special import ndtr, ndtri
-
-    x = np.asarray(x, dtype=np.float64)[:, None, :]
-    a, b = (box.low - x) / sigma, (box.high - x) / sigma
-    flip = a > 0
-    lo, hi = np.where(flip, -b, a), np.where(flip, -a, b)
-    u = rng.random((x.shape[0], m, box.dim))
-    z = ndtri(ndtr(lo) + u * (ndtr(hi) - ndtr(lo)))
-    z = np.clip(np.where(flip, -z, z), a, b)
-    return np.clip(x + sigma * z, box.low, box.high)
-
-
-def toy_sigma(low: np.ndarray, high: np.ndarray, box: Box) -> np.ndarray:
-    """The toy's σ ``(d,)`` matching 68.27 % HDIs ``(n, d)``: per image half the width (a normal's ±1σ), the whole
-    width where the interval touches a face (within 1 % of the box: a half-normal's 68.27 % is [0, σ]); the median
-    over images, at least 0.1 % of the box."""
-    width = high - low
-    touch = (low - box.low < 0.01 * box.width) | (box.high - high < 0.01 * box.width)
-    return np.maximum(np.median(np.where(touch, width, width / 2), axis=0), 1e-3 * box.width)
-
-
 def toy_coverage(
     truth: np.ndarray, sigma: np.ndarray, box: Box, n: int, m: int, rng: np.random.Generator, tolerance: float
 ) -> list[Coverage]:
-    """The coverage of an exact posterior's HDIs (:data:`MASSES`) at one truth ``(d,)`` on ``n`` simulated images."""
+    """The exact toy of :func:`~components.evaluate.named.weather_row` at one truth ``(d,)`` on ``n`` images: the
+    coverage of its HDIs (:data:`~components.evaluate.named.MASSES`) with ``m`` draws an image (``tests/test_local.py``
+    checks it)."""
     x = truth + sigma * rng.standard_normal((n, box.dim))
     draws = exact_truncated_draws(x, sigma, box, m, rng)
-    return [_coverage(draws, np.broadcast_to(truth, (n, box.dim)), box, mass, tolerance) for mass in MASSES]
+    out = []
+    for mass in MASSES:
+        bounds = [hdi(d, mass) for d in draws]
+        low, high = np.array([b[0] for b in bounds]), np.array([b[1] for b in bounds])
+        out.append(named_coverage(np.broadcast_to(truth, (n, box.dim)), low, high, box, tolerance, mass=mass))
+    return out
 
 
-def _coverage(draws: np.ndarray, truth: np.ndarray, box: Box, mass: float, tolerance: float) -> Coverage:
-    bounds = [hdi(d, mass) for d in draws]
-    low, high = np.array([b[0] for b in bounds]), np.array([b[1] for b in bounds])
-    return named_coverage(truth, low, high, box, tolerance, mass=mass)
-
-
-def render(weathers: dict[str, dict[str, float]], seed: int, scenes: int) -> dict[str, np.ndarray]:
-    """Each weather's images ``(scenes, 128, 128, 3)`` uint8 on its own new scenes."""
+def render(weathers: dict[str, tuple[str, dict]], seed: int, scenes: int) -> list[NamedSet]:
+    """Each weather's images ``(scenes, 128, 128, 3)`` uint8 on its own new scenes (the procedural renderer)."""
     from tqdm import tqdm
 
     from components.core.opencv import ipp_off
@@ -188,20 +95,13 @@ def render(weathers: dict[str, dict[str, float]], seed: int, scenes: int) -> dic
 
     ipp_off()
     sim = ProceduralSimulator(128, 128)
-    return {
-        name: np.stack([sim.render(w, s) for s in scene_seeds(seed, name, scenes)])
-        for name, w in tqdm(weathers.items(), desc="render", unit="weather")
-    }
+    with tqdm(total=len(weathers) * scenes, desc="render", unit="image") as bar:
 
+        def one(w: dict, s: int) -> np.ndarray:
+            bar.update()
+            return sim.render(w, s)
 
-def check_new_scenes(splits: dict, seed: int, names: list[str], scenes: int) -> None:
-    """Raise when a scene seed of this study is one of the dataset's (``splits``: every split of data/, opened)."""
-    used = set()
-    for split in splits.values():
-        used |= set(split.scene_seed.tolist())
-    mine = {s for name in names for s in scene_seeds(seed, name, scenes)}
-    if mine & used or len(mine) != len(names) * scenes:
-        raise SystemExit(f"{len(mine & used)} scene seeds of this study are the dataset's; pick other keys")
+        return render_sets(one, weathers, seed, scenes)
 
 
 def training_neighbours(theta_train: np.ndarray, truth: np.ndarray, box: Box, share: float = NEIGHBOURHOOD) -> int:
@@ -210,30 +110,40 @@ def training_neighbours(theta_train: np.ndarray, truth: np.ndarray, box: Box, sh
     return int(np.all(np.abs(theta_train - truth) <= share * box.width, axis=1).sum())
 
 
+def cached_inputs(model, split, n: int) -> np.ndarray:
+    """The model's inputs for the first ``n`` images of an opened split, from their cached features."""
+    from components.features import cache
+
+    return cache.inputs_from_cached(
+        model.backbone, cache.open_features(ROOT / "features", model.posterior.card["backbone"], split, stop=n)
+    )
+
+
 def fit_tests(model, seed: int, n: int, steps: int, null_trials: int) -> list[LocalTest]:
     """The joint L-C2ST and one per parameter, fitted on the first ``n`` images of the validation split: their cached
     features, labels, one model draw per image, x summarized by the model's posterior (:data:`SUMMARY_DRAWS` draws)."""
     from tqdm import tqdm
 
-    from components.features import cache
     from components.simulate import dataset
 
-    post, box = model.posterior, model.posterior.box
+    post = model.posterior
     split = dataset.open_split(ROOT / "data", "val")
-    backbone = model.backbone
-    x = cache.inputs_from_cached(backbone, cache.open_features(ROOT / "features", post.card["backbone"], split, stop=n))
+    x = cached_inputs(model, split, n)
     theta = split.theta[: len(x)].astype(np.float64)
     draws = post.sample(x, 1, seeding.derive_seed(seed, "named-weathers", "calibration"))[:, 0]
     summary = posterior_summary(
-        post.sample(x, SUMMARY_DRAWS, seeding.derive_seed(seed, "named-weathers", "summary")), box
+        post.sample(x, SUMMARY_DRAWS, seeding.derive_seed(seed, "named-weathers", "summary")), post.box
     )
-    tests = []
-    for j in tqdm(range(-1, box.dim), desc="L-C2ST fits", unit="fit"):
-        cols = slice(None) if j < 0 else slice(j, j + 1)
-        sub = box if j < 0 else Box(box.low[cols], box.high[cols], names=box.names[cols])
-        test = LocalTest(box=sub, steps=steps, null_trials=null_trials, seed=seeding.derive_seed(seed, "lc2st", j + 1))
-        tests.append(test.fit(theta[:, cols], summary, draws[:, cols]))
-    return tests
+    return fit_local_tests(
+        theta,
+        summary,
+        draws,
+        post.box,
+        steps=steps,
+        null_trials=null_trials,
+        seed=seed,
+        progress=lambda rows: tqdm(rows, desc="L-C2ST fits", unit="fit"),
+    )
 
 
 def characterize(model, images: np.ndarray, seed: int, key: str, draws: int) -> tuple[np.ndarray, np.ndarray]:
@@ -245,85 +155,15 @@ def characterize(model, images: np.ndarray, seed: int, key: str, draws: int) -> 
     return d, posterior_summary(s, post.box)
 
 
-def local_rejections(tests: list[LocalTest], summary: np.ndarray, draws: np.ndarray) -> list[dict]:
-    """Joint, then per-parameter L-C2ST on one set of images: rate, the null range, the set's p-value."""
-    out = []
-    for j, test in enumerate(tests):
-        cols = slice(None) if j == 0 else slice(j - 1, j)
-        r = test.rejections(summary, draws[:, :TEST_DRAWS, cols], LEVEL)
-        out.append({"rate": r.rate, "null_range": list(r.null_range()), "p_value": r.p_value})
-    return out
+def control_sample(model, seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The L-C2ST's control: the first n test images' posterior summaries ``(n, 2d)`` and draws ``(n, m, d)``."""
+    from components.simulate import dataset
 
-
-def correct_range(rate: np.ndarray, n: int) -> np.ndarray:
-    """The central 95 % range ``(d, 2)`` of a coverage on n images when each covers with probability ``rate``."""
-    return np.stack([binom.ppf(0.025, n, rate), binom.ppf(0.975, n, rate)], axis=1) / n
-
-
-def measure(name: str, truth: np.ndarray, draws: np.ndarray, box: Box, args, rng: np.random.Generator) -> dict:
-    """One weather's row: per parameter the champion's coverage (68 %, 95 %, Clopper–Pearson), the exact toy's at the
-    same truth on ``args.toy_images`` images with the 95 % range of its coverage on as many images as the champion's,
-    and the median absolute error."""
-    n = len(draws)
-    t = np.broadcast_to(truth, (n, box.dim))
-    cov = [_coverage(draws, t, box, mass, args.tolerance) for mass in MASSES]
-    bounds = [hdi(d, HDI_MASS) for d in draws]
-    sigma = toy_sigma(np.array([b[0] for b in bounds]), np.array([b[1] for b in bounds]), box)
-    toy = toy_coverage(truth, sigma, box, args.toy_images, args.draws, rng, args.tolerance)
-    span = correct_range(toy[0].rate, n)
-    err = np.median(np.abs(np.median(draws, axis=1) - truth), axis=0)
-    return {
-        "weather": name,
-        "preset": name in presets.USABLE,
-        "truth": truth.tolist(),
-        "covered68": cov[0].covered.tolist(),
-        "parameters": [
-            {
-                "coverage68": float(cov[0].rate[j]),
-                "ci68": [float(cov[0].low[j]), float(cov[0].high[j])],
-                "coverage95": float(cov[1].rate[j]),
-                "ci95": [float(cov[1].low[j]), float(cov[1].high[j])],
-                "toy68": float(toy[0].rate[j]),
-                "toy95": float(toy[1].rate[j]),
-                "toy_range68": span[j].tolist(),
-                "toy_sigma": float(sigma[j]),
-                "median_abs_error": float(err[j]),
-            }
-            for j in range(box.dim)
-        ],
-    }
-
-
-def heatmap(rows: list[dict], path: Path) -> None:
-    """Weathers × parameters: the champion's 68 % coverage beside the exact toy's. A champion cell outside the range
-    a correct model gives on as many images is marked − (below) or + (above); a cell whose marginal L-C2ST rejects
-    the weather's images as a set at level 0.05 is outlined."""
-    from matplotlib.colors import TwoSlopeNorm
-    from matplotlib.patches import Rectangle
-
-    from components.plots.canvas import new_figure, save_figure
-
-    names = [r["weather"] for r in rows]
-    fig = new_figure(13, 0.36 * len(rows) + 1.8)
-    axes = fig.subplots(1, 2, sharey=True)
-    titles = ("champion (− / + outside a correct model's range; box: L-C2ST rejects)", "exact posterior, same faces")
-    for ax, key, title in zip(axes, ("coverage68", "toy68"), titles, strict=True):
-        c = np.array([[p[key] for p in r["parameters"]] for r in rows])
-        im = ax.imshow(c, cmap="RdBu", norm=TwoSlopeNorm(HDI_MASS, 0.0, 1.0), aspect="auto")
-        for i, r in enumerate(rows):
-            for j, p in enumerate(r["parameters"]):
-                mark = ""
-                if key == "coverage68":
-                    lo, hi = p["toy_range68"]
-                    mark = "−" if p[key] < lo else "+" if p[key] > hi else ""
-                    if p["lc2st_p"] <= LEVEL:
-                        ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, lw=1.6, ec="black"))
-                ax.text(j, i, f"{c[i, j]:.2f}{mark}", ha="center", va="center", fontsize=7)
-        ax.set_xticks(range(len(SHORT_NAMES)), SHORT_NAMES)
-        ax.set_title(f"68.27 % HDI coverage — {title}", fontsize=9)
-    axes[0].set_yticks(range(len(names)), names, fontsize=8)
-    fig.colorbar(im, ax=axes, shrink=0.6, label="coverage (nominal 0.683)")
-    save_figure(fig, path)
+    post = model.posterior
+    x = cached_inputs(model, dataset.open_split(ROOT / "data", "test"), n)
+    draws = post.sample(x, TEST_DRAWS, seeding.derive_seed(seed, "named-weathers", "test", "draws"))
+    s = post.sample(x, SUMMARY_DRAWS, seeding.derive_seed(seed, "named-weathers", "test", "summary"))
+    return posterior_summary(s, post.box), draws
 
 
 def main() -> None:
@@ -343,35 +183,39 @@ def main() -> None:
     if min(args.scenes, args.test_images, args.toy_images, args.calibration - 1) < 1 or args.draws < TEST_DRAWS:
         parser.error(f"--scenes, --test-images, --toy-images must be ≥ 1, --calibration ≥ 2, --draws ≥ {TEST_DRAWS}")
     from components.export.lookup import load_registered
+    from components.plots.canvas import save_figure
+    from components.plots.named import named_heatmap
     from components.simulate import dataset
 
     start = time.perf_counter()
     seed = int(json.loads((ROOT / "data" / "manifest.json").read_text())["seed"])
     model = load_registered(args.model, args.registry)
-    weathers = named_weathers()
+    box = model.posterior.box
+    weathers = named_weathers("carla", load_params(ROOT / "params.yaml").evaluate.named.weathers)
     splits = {name: dataset.open_split(ROOT / "data", name) for name in dataset.SPLITS}
-    check_new_scenes(splits, seed, list(weathers), args.scenes)
-    images = render(weathers, seed, args.scenes)
+    used = {int(s) for split in splits.values() for s in split.scene_seed}
+    try:
+        check_new_scenes(used, seed, list(weathers), args.scenes)
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
+    sets = render(weathers, seed, args.scenes)
     tests = fit_tests(model, seed, args.calibration, args.steps, args.null_trials)
-    control = local_rejections(tests, *control_sample(model, seed, args.test_images))
+    control = local_rejections(tests, *control_sample(model, seed, args.test_images), LEVEL)
 
     rows, summaries, all_draws = [], [], []
     toy_rng = seeding.rng(seed, "named-weathers", "toy")
-    for name, w in weathers.items():
-        draws, summary = characterize(model, images[name], seed, name, args.draws)
-        truth = weather.theta_from_weather(w)
-        row = measure(name, truth, draws, model.posterior.box, args, toy_rng)
-        row["training_neighbours"] = training_neighbours(splits["train"].theta, truth, model.posterior.box)
-        lc = local_rejections(tests, summary, draws)
-        row["joint_lc2st"] = lc[0]
-        for j, p in enumerate(row["parameters"]):
-            p.update(lc2st_rate=lc[j + 1]["rate"], lc2st_p=lc[j + 1]["p_value"])
+    for s in sets:
+        draws, summary = characterize(model, s.images, seed, s.name, args.draws)
+        row = weather_row(s, draws, box, args.tolerance, args.toy_images, toy_rng)
+        row["training_neighbours"] = training_neighbours(splits["train"].theta, s.truth[0], box)
+        row["lc2st"] = local_rejections(tests, summary, draws[:, :TEST_DRAWS], LEVEL)
         rows.append(row)
         summaries.append(summary)
         all_draws.append(draws[:, :TEST_DRAWS])
-    named = local_rejections(tests, np.concatenate(summaries), np.concatenate(all_draws))
-    report(rows, control, named, args, len(splits["train"]))
-    heatmap(rows, Path(args.figure))
+    named = local_rejections(tests, np.concatenate(summaries), np.concatenate(all_draws), LEVEL)
+    report(rows, control, named, box, args, len(splits["train"]))
+    title = f"{model.name}: named weathers ({sum(r['images'] for r in rows)} images)"
+    save_figure(named_heatmap(rows, LEVEL, title), Path(args.figure))
     from benchmarks.machine import machine_info
 
     lc2st = {"steps": args.steps, "null_trials": args.null_trials, "level": LEVEL, "test": control, "named": named}
@@ -380,71 +224,56 @@ def main() -> None:
     print(json.dumps({**record, **machine_info()}))
 
 
-def control_sample(model, seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """The L-C2ST's control: the first n test images' posterior summaries ``(n, 2d)`` and draws ``(n, m, d)``."""
-    from components.features import cache
-    from components.simulate import dataset
-
-    post = model.posterior
-    split = dataset.open_split(ROOT / "data", "test")
-    x = cache.inputs_from_cached(
-        model.backbone, cache.open_features(ROOT / "features", post.card["backbone"], split, stop=n)
-    )
-    draws = post.sample(x, TEST_DRAWS, seeding.derive_seed(seed, "named-weathers", "test", "draws"))
-    s = post.sample(x, SUMMARY_DRAWS, seeding.derive_seed(seed, "named-weathers", "test", "summary"))
-    return posterior_summary(s, post.box), draws
-
-
-def report(rows: list[dict], control: list[dict], named: list[dict], args, n_train: int) -> None:
+def report(rows: list[dict], control: dict, named: dict, box: Box, args, n_train: int) -> None:
     """The tables: coverage (champion | exact toy), errors, L-C2ST per weather; pooled rows; the L-C2ST sets."""
+    names = box.names
     head = " ".join(f"{s:>24s}" for s in SHORT_NAMES)
     print(f"68.27 % HDI coverage on {args.scenes} images per weather: champion [95 % CP] | exact toy (− / +: outside")
     print(f"the 95 % range of a correct model's coverage on {args.scenes} images)\n{'weather':22s} {head}")
-    outside = [0, 0]
     for r in rows:
         cells = []
-        for p in r["parameters"]:
-            lo, hi = p["toy_range68"]
-            mark = "−" if p["coverage68"] < lo else "+" if p["coverage68"] > hi else " "
-            outside[0] += mark == "−"
-            outside[1] += mark == "+"
+        for p in (r["parameters"][name] for name in names):
+            mark = "−" if p["below"] else "+" if p["above"] else " "
             cells.append(f"{p['coverage68']:.2f}[{p['ci68'][0]:.2f},{p['ci68'][1]:.2f}]{mark}|{p['toy68']:.2f}")
         print(f"{r['weather']:22s} " + " ".join(f"{c:>24s}" for c in cells))
-    for label, keep in (("pooled presets", lambda r: r["preset"]), ("pooled all", lambda r: True)):
-        sel = [r for r in rows if keep(r)]
-        k, n = np.sum([r["covered68"] for r in sel], axis=0), len(sel) * args.scenes
-        lo, hi = clopper_pearson(k, n)
-        toy = np.mean([[p["toy68"] for p in r["parameters"]] for r in sel], axis=0)
-        cells = [f"{k[j] / n:.3f}[{lo[j]:.2f},{hi[j]:.2f}] |{toy[j]:.2f}" for j in range(len(k))]
+    for label, kind in (("pooled presets", "preset"), ("pooled all", None)):
+        pool = pooled(rows, box, kind=kind)["parameters"]
+        cells = [
+            f"{p['coverage68']:.3f}[{p['ci68'][0]:.2f},{p['ci68'][1]:.2f}] |{p['toy68']:.2f}"
+            for p in (pool[name] for name in names)
+        ]
         print(f"{label:22s} " + " ".join(f"{c:>24s}" for c in cells))
-    cells = len(rows) * len(SHORT_NAMES)
+    below = sum(r["parameters"][name]["below"] for r in rows for name in names)
+    above = sum(r["parameters"][name]["above"] for r in rows for name in names)
     print(
-        f"{outside[0] + outside[1]} of {cells} cells outside a correct model's range ({outside[0]} below, {outside[1]} above)"
+        f"{below + above} of {len(rows) * len(names)} cells outside a correct model's range ({below} below, {above} above)"
     )
     print(f"\n95 % HDI coverage (champion | toy), median |error|, marginal L-C2ST rejections at {LEVEL} (set p); the")
-    interior = round(n_train * (2 * NEIGHBOURHOOD) ** len(SHORT_NAMES))
+    interior = round(n_train * (2 * NEIGHBOURHOOD) ** len(names))
     print(
         f"joint L-C2ST; training images within ±{NEIGHBOURHOOD:.0%} of the box in every parameter (interior: {interior})"
     )
     for r in rows:
         cells = [
             f"{p['coverage95']:.2f}|{p['toy95']:.2f} {p['median_abs_error']:6.2f} "
-            f"{p['lc2st_rate']:.2f}({p['lc2st_p']:.3f})"
-            for p in r["parameters"]
+            f"{r['lc2st'][name]['rate']:.2f}({r['lc2st'][name]['p_value']:.3f})"
+            for name, p in ((name, r["parameters"][name]) for name in names)
         ]
-        j = r["joint_lc2st"]
+        j = r["lc2st"]["joint"]
         print(
             f"{r['weather']:22s} "
             + " ".join(f"{c:>26s}" for c in cells)
-            + f"  joint {j['rate']:.2f}({j['p_value']:.3f})"
+            + f"  joint {j['rate']:.2f}({j['p_value']:.3f}) nbrs {r['training_neighbours']}"
         )
     for title, sets in (("the named weathers' images together", named), (f"{args.test_images} test images", control)):
         print(f"\nL-C2ST at level {LEVEL} on {title}: rate, the null's 95 % range, the set's p — joint, per parameter")
-        for label, c in zip(("joint", *SHORT_NAMES), sets, strict=True):
-            lo, hi = c["null_range"]
-            print(f"  {label:8s} {c['rate']:.3f} [{lo:.3f}, {hi:.3f}] p {c['p_value']:.3f}")
+        for label, key in zip(("joint", *SHORT_NAMES), ("joint", *names), strict=True):
+            lo, hi = sets[key]["null_range"]
+            print(f"  {label:8s} {sets[key]['rate']:.3f} [{lo:.3f}, {hi:.3f}] p {sets[key]['p_value']:.3f}")
     noon = next(r for r in rows if r["weather"] == "ClearNoon")
-    print(f"\nClearNoon (sun 45°, clear sky): median |sun error| {noon['parameters'][3]['median_abs_error']:.2f}°")
+    print(
+        f"\nClearNoon (sun 45°, clear sky): median |sun error| {noon['parameters'][names[3]]['median_abs_error']:.2f}°"
+    )
 
 
 if __name__ == "__main__":

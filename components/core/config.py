@@ -493,6 +493,80 @@ class TrainConfig(_Section):
         return self
 
 
+class LocalTestConfig(_Section):
+    """The local test of the posterior, L-C2ST (:class:`components.evaluate.local.LocalTest`): classifiers trained on
+    validation images tell a model's draws from the truths; its p-value at an image is exact under H₀ (labels
+    swapped within pairs)."""
+
+    level: Annotated[Real, Field(gt=0, lt=1)]
+    """α: H₀(x) (the model's posterior is the true one at image x) is rejected when the p-value is ≤ α; a set of
+    images is judged by its rejection rate against the rates of the null classifiers (its own exact p-value)"""
+    calibration_images: Annotated[StrictInt, Field(ge=10)] | Literal["all"]
+    """the first validation images the classifiers learn from (their cached features and labels, one draw of the
+    model each); ≤ ``data.splits.val``, or ``all`` of them"""
+    summary_draws: Annotated[StrictInt, Field(ge=4)]
+    """posterior draws per image summarizing x for the classifiers (each parameter's median and log IQR)"""
+    test_draws: Annotated[StrictInt, Field(ge=50)]
+    """posterior draws per image in the statistic T(x) at an image; ≤ ``evaluate.named.draws``"""
+    steps: PositiveInt
+    """full-batch Adam steps of each classifier"""
+    null_trials: Annotated[StrictInt, Field(ge=19)]
+    """H, the classifiers trained on swapped labels: p-values take the values k / (H + 1)"""
+    test_images: PositiveInt | Literal["all"]
+    """the first test images tested beside the named weathers (the control: an average image of the prior);
+    ≤ ``data.splits.test``, or ``all`` of them"""
+
+
+class NamedConfig(_Section):
+    """Named weathers: the conditions users name (CARLA's presets, one's own, recorded folders), each on images of
+    new scenes, with each parameter's interval coverage beside an exact posterior's on a toy of the same faces, and
+    the local test (``reports/task1/local.json``, ``plots/<model>/named.png``)."""
+
+    presets: Literal["carla", "none"]
+    """``carla``: CARLA's 15 presets that keep the paper's fixed parameters (``pidc weather``), by CARLA's names and
+    values; ``none``: only ``weathers`` and ``folders``"""
+    weathers: dict[Annotated[str, Field(pattern=r"^[A-Za-z0-9_.:-]+$")], dict[str, Real]]
+    """one's own named weathers: name → the six predicted parameters in physical units inside ``prior`` (sun azimuth
+    0° as the presets'); a name must differ from the presets'"""
+    folders: dict[Annotated[str, Field(pattern=r"^[A-Za-z0-9_.:-]+$")], str]
+    """recorded named weathers: name → a folder of images with ``labels.csv`` (the recorded format,
+    docs/simulators.md), relative to the project; images larger than ``simulator.height × width`` at its aspect are
+    area-resized"""
+    scenes: Annotated[StrictInt, Field(ge=2)]
+    """new scenes per rendered weather (scene seeds no split of the dataset uses; checked)"""
+    draws: Annotated[StrictInt, Field(ge=400)]
+    """posterior draws per image (the 68.27 % and 95 % HDIs)"""
+    tolerance: Annotated[Real, Field(ge=0)]
+    """θ's units: a truth on a face of the box (no rain) is covered when the interval reaches within this of it"""
+    toy_images: Annotated[StrictInt, Field(ge=24)]
+    """images per weather of the exact toy (θ uniform on the box, x = θ + σ·ε, σ from the model's own intervals
+    there): what a correct model's coverage is at that weather"""
+    local_test: LocalTestConfig
+    """the L-C2ST's settings"""
+
+    @model_validator(mode="after")
+    def _names(self) -> NamedConfig:
+        from components.core import presets
+
+        taken = set(presets.USABLE) if self.presets == "carla" else set()
+        for name, values in self.weathers.items():
+            if name in taken:
+                raise ValueError(f"weathers.{name}: the name of a CARLA preset; name one's own weather otherwise")
+            missing = [p for p in weather.PREDICTED if p not in values]
+            extra = sorted(set(values) - set(weather.PREDICTED))
+            if missing or extra:
+                raise ValueError(
+                    f"weathers.{name}: needs exactly the six predicted parameters ({', '.join(weather.PREDICTED)}); "
+                    f"missing {missing}, unknown {extra}"
+                )
+        clash = sorted((taken | set(self.weathers)) & set(self.folders))
+        if clash:
+            raise ValueError(f"folders: {', '.join(clash)} already name a weather")
+        if self.local_test.test_draws > self.draws:
+            raise ValueError(f"local_test.test_draws ({self.local_test.test_draws}) exceeds draws ({self.draws})")
+        return self
+
+
 class EvaluateConfig(_Section):
     """Task I evaluation of every model of the grid on the test split."""
 
@@ -514,6 +588,8 @@ class EvaluateConfig(_Section):
     images and samples, simulated ``band_replicates`` times (seeded); ``within_band``: the error is ≤ the band"""
     band_replicates: Annotated[StrictInt, Field(ge=100)]
     """simulated evaluations of a perfectly calibrated model behind the band (seeded)"""
+    named: NamedConfig
+    """named weathers and the local test, for every model"""
     runner: RunnerConfig
     """the task runner evaluating models in parallel (processes: one onnxruntime thread each)"""
 
@@ -853,6 +929,16 @@ class Params(_Section):
                 f"evaluate.images is {self.evaluate.images} but the test split has only "
                 f"{self.data.splits['test']} images"
             )
+        lt = self.evaluate.named.local_test
+        for key, n, split in (
+            ("calibration_images", lt.calibration_images, "val"),
+            ("test_images", lt.test_images, "test"),
+        ):
+            if n != "all" and n > self.data.splits[split]:
+                raise ValueError(
+                    f"evaluate.named.local_test.{key} is {n} but the {split} split has only {self.data.splits[split]} "
+                    "images"
+                )
         return self
 
     @model_validator(mode="after")
@@ -871,6 +957,25 @@ class Params(_Section):
                     raise ValueError(
                         f"task2.modes.{k}.mean: {name} = {value:g} lies outside the prior [{box.low[i]:g}, "
                         f"{box.high[i]:g}]: the bag's weather is the mixture truncated to the prior"
+                    )
+        named = dict(self.evaluate.named.weathers)
+        if self.evaluate.named.presets == "carla":
+            from components.core import presets
+
+            named |= {n: {k: presets.preset_weather(n)[k] for k in weather.PREDICTED} for n in presets.USABLE}
+        for name, values in named.items():
+            where = (
+                f"evaluate.named.weathers.{name}.{{}}"
+                if name in self.evaluate.named.weathers
+                else f"evaluate.named.presets: CARLA's {name} has {{}}"
+            )
+            for parameter, value in values.items():
+                i = box.names.index(parameter)
+                if not box.low[i] <= value <= box.high[i]:
+                    hint = "" if name in self.evaluate.named.weathers else " (set evaluate.named.presets: none)"
+                    raise ValueError(
+                        f"{where.format(parameter)} = {value:g}, outside the prior [{box.low[i]:g}, {box.high[i]:g}]"
+                        f"{hint}"
                     )
         for bag, cfg in self.task3.bags.items():
             for name, (low, high) in cfg.box.items():
@@ -982,7 +1087,7 @@ def profile_names(params_path: str | Path) -> list[str]:
 
 
 #: mappings keyed by the user's names, not by settings: a profile's value replaces params.yaml's as a whole
-NAMED_MAPPINGS: frozenset[str] = frozenset({"train.variants"})
+NAMED_MAPPINGS: frozenset[str] = frozenset({"train.variants", "evaluate.named.weathers", "evaluate.named.folders"})
 
 
 def _merge(base: dict, override: dict, where: str, unknown: list[str]) -> dict:

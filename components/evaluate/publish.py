@@ -50,7 +50,7 @@ def write_grid_reports(out: Path, results: Sequence[Mapping], params: Params, n:
     Arguments:
         out: the folder ``reports/task1/``.
         results: one result per model of the grid (``model``, ``metrics``, ``coverage``, ``pi``, ``parameters``,
-            ``profiles``), in the order of its rows.
+            ``profiles``, ``local``), in the order of its rows.
         params: the project's settings (``evaluate.band_level``, the prior box).
         n: the number of test images each model was evaluated on.
         band: the calibration band of a perfectly calibrated model on ``n`` images.
@@ -77,6 +77,7 @@ def write_grid_reports(out: Path, results: Sequence[Mapping], params: Params, n:
     write_json(out / "metrics.json", metrics)
     write_json(out / "parameters.json", parameters)
     write_json(out / "profiles.json", {r["model"]: r["profiles"] for r in results})
+    write_json(out / "local.json", {r["model"]: r["local"] for r in results})
     rows = {m: report.model_row(metrics[m], parameters[m]) for m in metrics}
     for m, row in rows.items():
         write_json(out / "models" / f"{m}.json", row)

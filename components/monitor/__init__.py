@@ -5,8 +5,8 @@
 - :mod:`~components.monitor.recorded`: a folder of recorded images with their labels (``labels.csv``), validated.
 - :mod:`~components.monitor.checks`: the calibration alarm, the ODD decision's false-alarm interval, the alarms.
 
-Downstream of every other package (it reuses the evaluation's metrics and Task III's sweep); no DVC stage imports
-it. Used by the scheduled monitoring (``flows/monitor.py``, the deployments of ``prefect.yaml``).
+Downstream of every other package (it reuses the evaluation's metrics and Task III's sweep); the one DVC stage that
+imports it is ``evaluate``, for :mod:`~components.monitor.recorded` (named weathers from recorded folders). Used by the scheduled monitoring (``flows/monitor.py``, the deployments of ``prefect.yaml``).
 """
 
 __all__ = ["draws", "recorded", "checks"]

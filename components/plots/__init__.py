@@ -5,7 +5,7 @@ function returns a :class:`matplotlib.figure.Figure`, written with :func:`save_f
 
 * Task I: :func:`marginal_histograms` (1st analysis), :func:`corner_plot` (2nd), :func:`ppc_sheet` (3rd),
   :func:`coverage_plot` (4th), :func:`superiority_boxplot` (5th), :func:`parameter_heatmaps` (per parameter),
-  :func:`truth_profile_plot` (per parameter and true value);
+  :func:`truth_profile_plot` (per parameter and true value), :func:`named_heatmap` (named weathers);
 * Task II: :func:`corner_compare`, :func:`marginals_overlay`, :func:`held_out_curve`, :func:`image_grid`;
 * Task III: :func:`boxplots_by_level`, :func:`roc_curves`, :func:`relation_marginals` (one target, ``pidc relate``);
 * training: :func:`loss_curves`;
@@ -21,6 +21,7 @@ from components.plots.deconvolution import held_out_curve
 from components.plots.hdr import grid_density, grid_hdr_thresholds, hdr_log_threshold, in_hdr
 from components.plots.images import image_grid, ppc_sheet
 from components.plots.marginals import marginal_hdr_histograms, marginal_histograms
+from components.plots.named import named_heatmap
 from components.plots.overlay import marginals_overlay
 from components.plots.parameters import parameter_heatmaps
 from components.plots.profile import truth_profile_plot
@@ -30,6 +31,7 @@ from components.plots.training import best_epoch, loss_curves
 
 __all__ = [
     "save_figure",
+    "named_heatmap",
     "new_figure",
     "hdr_log_threshold",
     "in_hdr",

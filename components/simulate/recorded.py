@@ -357,7 +357,7 @@ def plan_import(params: Params, root: str | Path) -> RecordedImport:
 # --- importing a shard -------------------------------------------------------------------------------------------
 
 
-def _fit(image: np.ndarray, size: tuple[int, int], file: str, where: str) -> np.ndarray:
+def fit_image(image: np.ndarray, size: tuple[int, int], file: str, where: str) -> np.ndarray:
     """``image`` area-resized to ``size`` (h, w); an error naming the file for a smaller image or another aspect."""
     h, w = size
     height, width = image.shape[:2]
@@ -396,7 +396,7 @@ def import_shard(rows: RecordedRows, resolution: tuple[int, int], root: str | Pa
         except OSError as e:
             raise RecordedError(f"{file}: unreadable ({e.strerror or e}) (named on {where})") from None
         sizes[f"{image.shape[1]}x{image.shape[0]}"] += 1
-        images[j] = _fit(image, (h, w), file, where)
+        images[j] = fit_image(image, (h, w), file, where)
     resized = sum(n for size, n in sizes.items() if size != f"{w}x{h}")
     extra = {"resized": resized, "source_sizes": dict(sorted(sizes.items()))}
     seeds = np.full(len(images), NO_SCENE_SEED, dtype=np.int64)

@@ -7,7 +7,8 @@ posterior; 10 observations per problem drawn from the prior with a fixed seed.
 For every (problem, simulation budget) the estimator is trained ONCE (amortized) on ``budget`` simulations
 (θ ~ prior, x ~ simulator, a fixed seed per problem and budget) and then sampled ``--samples`` times at each
 observation; the metric is the classifier two-sample test accuracy (C2ST, 0.5 = perfect) against as many
-reference draws, averaged over the observations (mean ± std).
+reference draws, summarized over the observations by its median (sbibm's statistic) and mean ± std; against sbi's
+column, each pidc column's difference paired by observation (mean ± standard error).
 
 Estimators (``--estimator``):
 
@@ -36,9 +37,11 @@ files there. Usage, from the repository root::
     nice .venv-sbi/bin/python benchmarks/bench_sbi_problems.py --estimator sbi [same options]
     .venv/bin/python benchmarks/bench_sbi_problems.py --report
 
-Prints a table (C2ST mean ± std over the observations, training seconds, epochs) and one JSON line with the
-settings, the machine and every figure. Figures of 2026-11-23 (``--samples 5000``) and the recommended change of
-the training defaults (``steps-small``, adopted as ``train.scale_to``): docs/studies/sbi-problems.md.
+Prints a table (C2ST median and mean ± std over the observations, training seconds, epochs), the paired differences
+from sbi when its files are there, and one JSON line with the settings, the machine and every figure. Figures of
+2026-11-23 (``--samples 5000``) and the recommended change of the training defaults (``steps-small``, adopted as
+``train.scale_to``): docs/studies/sbi-problems.md; the floor of epochs for few input features
+(``train.few_features_epochs``): docs/studies/sbi-small-inputs.md.
 """
 
 from __future__ import annotations
@@ -145,6 +148,26 @@ def _sbi_train(n: int, f: Any, t: Any) -> tuple[Any, Any]:
     return f, replace(t, epochs=2000, patience=20, batch_size=200, lr=5e-4, schedule="constant", weight_decay=0.0)
 
 
+def _no_context(n: int, f: Any, t: Any) -> tuple[Any, Any]:
+    return replace(f, context_layers=()), t
+
+
+def _early_stop(n: int, f: Any, t: Any) -> tuple[Any, Any]:
+    return f, replace(t, patience=math.ceil(10 * max(1.0, 10_000 / n)))
+
+
+def _epochs_x3(n: int, f: Any, t: Any) -> tuple[Any, Any]:
+    return f, replace(t, epochs=3 * t.epochs)
+
+
+def _full_width(n: int, f: Any, t: Any) -> tuple[Any, Any]:
+    return replace(f, hidden_features=(128, 128)), t
+
+
+def _epochs_x3_no_context(n: int, f: Any, t: Any) -> tuple[Any, Any]:
+    return _no_context(n, *_epochs_x3(n, f, t))
+
+
 SETTINGS: dict[str, tuple[str, Rule]] = {
     "default": ("params.yaml train: as it is", lambda n, f, t: (f, t)),
     "steps": ("epochs and patience × max(1, 9000/n_train): the 10k run's optimizer steps at every budget", _steps),
@@ -153,6 +176,15 @@ SETTINGS: dict[str, tuple[str, Rule]] = {
     "steps-small": ("steps rule + hidden widths / sqrt(9000/n_train) (rounded to 16, ≥ 32)", _steps_small),
     "wd": ("weight_decay × max(1, 9000/n_train)", _wd),
     "patience": ("epochs 60 → 200 and patience 10 → 20 at every budget", _patience),
+    # issue #57 part 5: the levers of a few-feature input, one at a time (docs/studies/sbi-small-inputs.md)
+    "no-context": ("no context network (features straight into the flows)", _no_context),
+    "early-stop": (
+        "early stopping, patience ⌈10 · max(1, 10000/n_train)⌉ epochs (best epoch kept as always)",
+        _early_stop,
+    ),
+    "epochs-x3": ("3 × the epochs of the defaults (the cosine schedule stretches)", _epochs_x3),
+    "full-width": ("hidden widths 128 × 128 at every size (no ÷√s)", _full_width),
+    "epochs-x3-no-context": ("epochs-x3 and no context network", _epochs_x3_no_context),
     "sbi-train": (
         "sbi's training: constant lr 5e-4, batch 200, patience 20, no weight decay (pidc's flow)",
         _sbi_train,
@@ -338,6 +370,7 @@ def run_cell(problem: Problem, budget: int, estimator: str, setting: str, args: 
         "protocol": protocol(args),
         "c2st": scores,
         "c2st_mean": float(np.mean(scores)),
+        "c2st_median": float(np.median(scores)),
         "c2st_std": float(np.std(scores)),
         "c2st_s": time.perf_counter() - t0,
         "theta_obs": theta_obs.tolist(),
@@ -361,22 +394,49 @@ def load_records(out: Path) -> list[dict[str, Any]]:
     return [json.loads(p.read_text()) for p in sorted(out.glob("*__*__*.json"))]
 
 
+def paired_difference(record: dict[str, Any], other: dict[str, Any]) -> tuple[float, float]:
+    """Mean and standard error over the observations of ``record``'s C2ST minus ``other``'s, observation by
+    observation (both scored at the same observations; < 0: ``record`` better)."""
+    d = np.asarray(record["c2st"]) - np.asarray(other["c2st"])
+    return float(d.mean()), float(d.std(ddof=1) / math.sqrt(len(d))) if len(d) > 1 else math.nan
+
+
 def print_table(records: list[dict[str, Any]]) -> None:
-    """One row per (problem, budget), one column per estimator/setting: C2ST mean ± std [training s, epochs]."""
+    """One row per (problem, budget), one column per estimator/setting: C2ST median, mean ± std [training s, epochs];
+    then, when sbi's column is there, each pidc column's paired difference from it (mean ± standard error)."""
     labels = sorted({r["label"] for r in records}, key=lambda s: (s != "sbi", s != "pidc-default", s))
     cells = {(r["problem"], r["budget"], r["label"]): r for r in records}
-    print("\nC2ST accuracy, mean ± std over observations (0.5 = perfect); [training s / epochs run]")
-    print(f"{'problem':<24} {'budget':>6} " + " ".join(f"{lab:>26}" for lab in labels))
-    for name in PROBLEMS:
-        for budget in sorted({r["budget"] for r in records}):
-            row = [cells.get((name, budget, lab)) for lab in labels]
-            if not any(row):
-                continue
-            text = [
-                "—" if r is None else f"{r['c2st_mean']:.3f} ± {r['c2st_std']:.3f} [{r['train_s']:.0f}s/{r['epochs']}]"
-                for r in row
-            ]
-            print(f"{name:<24} {budget:>6} " + " ".join(f"{t:>26}" for t in text))
+    rows = [
+        (name, budget)
+        for name in PROBLEMS
+        for budget in sorted({r["budget"] for r in records})
+        if any((name, budget, lab) in cells for lab in labels)
+    ]
+    print("\nC2ST accuracy over observations (0.5 = perfect): median | mean ± std [training s / epochs run]")
+    print(f"{'problem':<24} {'budget':>6} " + " ".join(f"{lab:>34}" for lab in labels))
+    for name, budget in rows:
+        text = [
+            "—"
+            if (r := cells.get((name, budget, lab))) is None
+            else f"{np.median(r['c2st']):.3f} | {r['c2st_mean']:.3f} ± {r['c2st_std']:.3f} [{r['train_s']:.0f}s/{r['epochs']}]"
+            for lab in labels
+        ]
+        print(f"{name:<24} {budget:>6} " + " ".join(f"{t:>34}" for t in text))
+    others = [lab for lab in labels if lab != "sbi"]
+    if "sbi" not in labels or not others:
+        return
+    print("\nC2ST minus sbi's, paired by observation: mean ± standard error (< 0: better than sbi)")
+    print(f"{'problem':<24} {'budget':>6} " + " ".join(f"{lab:>20}" for lab in others))
+    for name, budget in rows:
+        ref = cells.get((name, budget, "sbi"))
+        text = []
+        for lab in others:
+            r = cells.get((name, budget, lab))
+            if r is None or ref is None or len(r["c2st"]) != len(ref["c2st"]):
+                text.append("—")
+            else:
+                text.append("{:+.3f} ± {:.3f}".format(*paired_difference(r, ref)))
+        print(f"{name:<24} {budget:>6} " + " ".join(f"{t:>20}" for t in text))
 
 
 # --- main ----------------------------------------------------------------------------------------------

@@ -179,6 +179,7 @@ MISSING = [
     "task3.smoothing",
     "train.input_noise_max_size",
     "train.input_noise_min_features",
+    "train.few_features_epochs",
     "train.compile_min_steps",
     "train.mirror",
     "train.ensemble_min_size",

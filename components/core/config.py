@@ -446,7 +446,11 @@ class TrainConfig(_Section):
     input_noise_min_features: PositiveInt
     """no input noise for a model of fewer input features: noise regularizes many redundant features (cues 377, tiny
     256) and erases the signal of a few informative ones (the SBI problems' 2–10)
-    (study: docs/studies/sbi-problems-defaults.md)"""
+    (study: docs/studies/sbi-problems-defaults.md); such "few features" also train ``few_features_epochs``"""
+    few_features_epochs: PositiveInt | None
+    """a model of fewer than ``input_noise_min_features`` frozen features trains at least this many epochs (still
+    capped by ``sample_budget``): a few informative inputs keep improving long after the image models' ``epochs``;
+    null: the images' rule for every input (components/posterior/settings.py; study: docs/studies/sbi-small-inputs.md)"""
     mirror: StrictBool
     """train on each input or its mirror image's with probability ½ (a left-right mirror leaves the weather and the
     sun and wind azimuths unchanged in law, the scenes nearly; components/posterior/train.py); the backbones'

@@ -27,6 +27,7 @@ __all__ = [
     "training_config",
     "temperature_regime",
     "epochs_for",
+    "few_features",
     "patience_for",
     "hidden_for",
     "input_noise_for",
@@ -116,15 +117,32 @@ def temperature_regime(train_section: TrainConfig, box: Box) -> Regime | None:
     return Regime(index=list(box.names).index(r.parameter), below=r.below, name=r.name)
 
 
-def epochs_for(train_section: TrainConfig, size: int, *, trainable: bool) -> int:
-    """The epochs of a model trained on ``size`` images: ``min(⌈epochs·s⌉, ⌈sample_budget / size⌉)`` with s of
-    :func:`small_data_scale`; ``embedding_epochs`` and ``embedding_sample_budget`` (and no scaling, each epoch being
-    costly) for a backbone trained jointly with the flow."""
+def few_features(train_section: TrainConfig, features: int) -> bool:
+    """Whether ``features`` frozen input features are few: fewer than ``train.input_noise_min_features``.
+
+    A handful of informative numbers (the SBI problems' 2–10) rather than a backbone's hundreds of redundant features
+    (256–2048): such an input gets no input noise (:func:`input_noise_for`) and at least ``train.few_features_epochs``
+    epochs (:func:`epochs_for`). No model of the pipeline has few features."""
+    whole_number("features", features, low=1)
+    return features < train_section.input_noise_min_features
+
+
+def epochs_for(train_section: TrainConfig, size: int, *, trainable: bool, features: int | None = None) -> int:
+    """The epochs of a model trained on ``size`` images of ``features`` frozen features: ``min(⌈epochs·s⌉,
+    ⌈sample_budget / size⌉)`` with s of :func:`small_data_scale`; ``embedding_epochs`` and ``embedding_sample_budget``
+    (and no scaling, each epoch being costly) for a backbone trained jointly with the flow.
+
+    With :func:`few_features` the first term is at least ``train.few_features_epochs`` (the cap stays): on the 2-D
+    SBI problems the 10k models still improved at their last epoch (67 of 67), while the 1k ones, already at ⌈60·s⌉
+    ≈ 667 epochs, peaked mid-run (docs/studies/sbi-small-inputs.md). ``features=None`` (not given): many."""
     t = train_section
     s = small_data_scale(t, size)
     if trainable:
         return max(1, min(t.embedding_epochs, math.ceil(t.embedding_sample_budget / size)))
-    return max(1, min(math.ceil(t.epochs * s), math.ceil(t.sample_budget / size)))
+    epochs = math.ceil(t.epochs * s)
+    if features is not None and t.few_features_epochs is not None and few_features(t, features):
+        epochs = max(epochs, t.few_features_epochs)
+    return max(1, min(epochs, math.ceil(t.sample_budget / size)))
 
 
 def patience_for(train_section: TrainConfig, size: int) -> int | None:
@@ -151,13 +169,14 @@ def input_noise_for(train_section: TrainConfig, size: int, *, trainable: bool, f
     floor on the number of features."""
     whole_number("size", size, low=1)
     whole_number("features", features, low=1)
-    if trainable or size > train_section.input_noise_max_size or features < train_section.input_noise_min_features:
+    if trainable or size > train_section.input_noise_max_size or few_features(train_section, features):
         return 0.0
     return float(train_section.input_noise) * math.sqrt(train_section.scale_to / size)
 
 
-def compile_for(train_section: TrainConfig, size: int, *, trainable: bool) -> bool:
-    """Whether a model of ``size`` training images compiles its training loss (``TrainingConfig.compile``): when it
+def compile_for(train_section: TrainConfig, size: int, *, trainable: bool, features: int | None = None) -> bool:
+    """Whether a model of ``size`` training images (of ``features`` frozen features, as :func:`epochs_for`) compiles
+    its training loss (``TrainingConfig.compile``): when it
     takes at least ``train.compile_min_steps`` optimizer steps (:func:`epochs_for` × ⌈size / batch_size⌉). The
     compilation costs 35–50 s once per model shape (later processes reuse inductor's disk cache) and takes a
     256-sample step of the cues flow from 18.6 to 11.0 ms on one thread: it pays from a few thousand steps
@@ -165,7 +184,7 @@ def compile_for(train_section: TrainConfig, size: int, *, trainable: bool) -> bo
     t = train_section
     if t.compile_min_steps is None:
         return False
-    steps = epochs_for(t, size, trainable=trainable) * math.ceil(size / t.batch_size)
+    steps = epochs_for(t, size, trainable=trainable, features=features) * math.ceil(size / t.batch_size)
     return steps >= t.compile_min_steps
 
 
@@ -180,14 +199,15 @@ def training_config(
     ensemble: int | None = None,
 ) -> TrainingConfig:
     """The training settings of ``train`` for a model of ``size`` training images of ``features`` input features
-    (the backbone's dimension): :func:`epochs_for` epochs, :func:`input_noise_for` noise; ``seed`` is the caller's;
+    (the backbone's dimension): :func:`epochs_for` epochs, :func:`input_noise_for` noise (both depend on
+    :func:`few_features`); ``seed`` is the caller's;
     ``balance`` and ``ensemble`` (a variant's) replace ``train.balance`` and the flows of :func:`ensemble_for`."""
     t = train_section
     return TrainingConfig(
         **_every_field(
             TrainingConfig,
             dict(
-                epochs=epochs_for(t, size, trainable=trainable),
+                epochs=epochs_for(t, size, trainable=trainable, features=features),
                 batch_size=t.batch_size,
                 lr=t.lr,
                 weight_decay=t.weight_decay,
@@ -202,7 +222,7 @@ def training_config(
                 balance=t.balance if balance is None else balance,
                 input_noise=input_noise_for(t, size, trainable=trainable, features=features),
                 mirror=t.mirror,
-                compile=compile_for(t, size, trainable=trainable),
+                compile=compile_for(t, size, trainable=trainable, features=features),
             ),
         )
     )

@@ -60,29 +60,34 @@ overhead, and one JSON line with every figure and the machine's details.
 
 from __future__ import annotations
 
-import argparse
-import copy
-import hashlib
-import json
-import math
-import os
-import re
-import shutil
-import signal
-import socket
-import subprocess
 import sys
-import time
-import urllib.request
-from collections.abc import Iterable, Sequence
-from datetime import UTC, datetime
-from importlib import metadata
 from pathlib import Path
-
-import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+# isort: off
+import components  # noqa: E402,F401  first, before numpy: it pins numpy's SIMD kernels (the pipeline's images)
+
+# isort: on
+import argparse  # noqa: E402
+import copy  # noqa: E402
+import hashlib  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import os  # noqa: E402
+import re  # noqa: E402
+import shutil  # noqa: E402
+import signal  # noqa: E402
+import socket  # noqa: E402
+import subprocess  # noqa: E402
+import time  # noqa: E402
+import urllib.request  # noqa: E402
+from collections.abc import Iterable, Sequence  # noqa: E402
+from datetime import UTC, datetime  # noqa: E402
+from importlib import metadata  # noqa: E402
+
+import yaml  # noqa: E402
 
 from benchmarks.machine import machine_info  # noqa: E402
 from components.core.config import ConfigError, load_params, parse_params  # noqa: E402

@@ -947,18 +947,20 @@ class Params(_Section):
 
     @model_validator(mode="after")
     def _domains_inside_prior(self) -> Params:
+        """Every fixed, named or bag weather lies inside the prior; all that do not are named in one error."""
         box = self.box
+        errors: list[str] = []
         for name, value in self.task2.fixed.items():
             i = box.names.index(name)
             if not box.low[i] <= value <= box.high[i]:
-                raise ValueError(
+                errors.append(
                     f"task2.fixed.{name} = {value:g} lies outside the prior [{box.low[i]:g}, {box.high[i]:g}]"
                 )
         varying = [box.names.index(name) for name in ("fog_density", "precipitation")]
         for k, mode in enumerate(self.task2.modes):
             for name, i, value in zip(("fog_density", "precipitation"), varying, mode.mean, strict=True):
                 if not box.low[i] <= value <= box.high[i]:
-                    raise ValueError(
+                    errors.append(
                         f"task2.modes.{k}.mean: {name} = {value:g} lies outside the prior [{box.low[i]:g}, "
                         f"{box.high[i]:g}]: the bag's weather is the mixture truncated to the prior"
                     )
@@ -977,7 +979,7 @@ class Params(_Section):
                 i = box.names.index(parameter)
                 if not box.low[i] <= value <= box.high[i]:
                     hint = "" if name in self.evaluate.named.weathers else " (set evaluate.named.presets: none)"
-                    raise ValueError(
+                    errors.append(
                         f"{where.format(parameter)} = {value:g}, outside the prior [{box.low[i]:g}, {box.high[i]:g}]"
                         f"{hint}"
                     )
@@ -985,10 +987,13 @@ class Params(_Section):
             for name, (low, high) in cfg.box.items():
                 i = box.names.index(name)
                 if low < box.low[i] or high > box.high[i]:
-                    raise ValueError(
+                    errors.append(
                         f"task3.bags.{bag}.box.{name} = [{low:g}, {high:g}] lies outside the prior "
                         f"[{box.low[i]:g}, {box.high[i]:g}]: a bag's sub-box must lie inside the prior"
                     )
+        if errors:
+            # Every misplaced value at once: a prior edit moves several of them together.
+            raise ValueError("\n  ".join(errors))
         return self
 
     @property

@@ -329,46 +329,49 @@ def _named(
         plots.named_heatmap(rows, lt.level, f"{model_id}: named weathers ({sum(r['images'] for r in rows)} images)"),
         plot_dir / "named.png",
     )
+    pooled = {kind: named.pooled(rows, box, kind=kind) for kind in ("preset", "own", "recorded", None)}
     out = {
         "weathers": rows,
-        "pooled": {kind: named.pooled(rows, box, kind=kind) for kind in ("preset", "own", "recorded", None)},
+        "pooled": {("all" if kind is None else kind): v for kind, v in pooled.items() if v is not None},
         "lc2st": {"level": lt.level, "named": together, "test": control, "test_images": len(x_test)},
     }
-    out["pooled"] = {("all" if k is None else k): v for k, v in out["pooled"].items() if v is not None}
     if note:
         out["note"] = note
     return out
 
 
+LOCAL_METRICS = (
+    "named_weathers",
+    "named_cells_below",
+    "named_cells_above",
+    "named_coverage68",
+    "lc2st_named_rate",
+    "lc2st_named_p",
+    "lc2st_test_rate",
+    "lc2st_test_p",
+)
+"""The keys of :func:`local_metrics`, in order."""
+
+
 def local_metrics(local: dict) -> dict:
-    """The headline figures of :func:`_named`: the named weathers and images, the cells whose 68 % coverage lies
-    below or above a correct model's range, the pooled 68 % coverage (mean over parameters), and the joint L-C2ST's
-    rejection rate and p-value on the named images together and on the test images (NaN when skipped)."""
+    """The headline figures of :func:`_named` (keys :data:`LOCAL_METRICS`): the named weathers and images, the cells
+    whose 68 % coverage lies below or above a correct model's range, the pooled 68 % coverage (mean over parameters),
+    and the joint L-C2ST's rejection rate and p-value on the named images together and on the test images (NaN when
+    skipped)."""
     if "skipped" in local:
-        nan = float("nan")
-        return dict.fromkeys(
-            (
-                "named_weathers",
-                "named_cells_below",
-                "named_cells_above",
-                "named_coverage68",
-                "lc2st_named_rate",
-                "lc2st_named_p",
-                "lc2st_test_rate",
-                "lc2st_test_p",
-            ),
-            nan,
-        )
+        return dict.fromkeys(LOCAL_METRICS, float("nan"))
     rows = local["weathers"]
     cells = [c for r in rows for c in r["parameters"].values()]
     pooled = local["pooled"]["all"]["parameters"].values()
-    return {
-        "named_weathers": len(rows),
-        "named_cells_below": sum(c["below"] for c in cells),
-        "named_cells_above": sum(c["above"] for c in cells),
-        "named_coverage68": float(np.mean([p["coverage68"] for p in pooled])),
-        "lc2st_named_rate": local["lc2st"]["named"]["joint"]["rate"],
-        "lc2st_named_p": local["lc2st"]["named"]["joint"]["p_value"],
-        "lc2st_test_rate": local["lc2st"]["test"]["joint"]["rate"],
-        "lc2st_test_p": local["lc2st"]["test"]["joint"]["p_value"],
-    }
+    lc2st = local["lc2st"]
+    values = (
+        len(rows),
+        sum(c["below"] for c in cells),
+        sum(c["above"] for c in cells),
+        float(np.mean([p["coverage68"] for p in pooled])),
+        lc2st["named"]["joint"]["rate"],
+        lc2st["named"]["joint"]["p_value"],
+        lc2st["test"]["joint"]["rate"],
+        lc2st["test"]["joint"]["p_value"],
+    )
+    return dict(zip(LOCAL_METRICS, values, strict=True))

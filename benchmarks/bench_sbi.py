@@ -3,23 +3,27 @@
 What is compared (the issue: "training throughput and time to reach a given validation loss, side by side with
 the ``sbi`` package's NPE on the same features and flow size, as a ratio"):
 
-* data: the first ``--n-train`` (10 000) cached ``cues`` features (80-dim) of the train split and their θ (the
-  6 physical weather parameters, inside the prior box of ``params.yaml``); validation = the whole val split
-  (2 000), read through pidc's API (``open_split``, ``open_features``);
+* data: the first ``--n-train`` (10 000) cached ``cues`` features (377-dim today) of the train split and their θ
+  (the 6 physical weather parameters, inside the prior box of ``params.yaml``); the benchmark's validation set =
+  the whole val split (6 000 today), read through pidc's API (``open_split``, ``open_features``);
 * flow: a conditional zuko 1.6 NSF with 3 coupling transforms (``passes=2``), MLPs of 128×128 hidden units,
   8 spline bins — pidc: ``FlowConfig(transforms=3, hidden_features=(128, 128), bins=8, passes=2)``; sbi:
   ``posterior_nn(model="zuko_nsf", hidden_features=[128, 128], num_transforms=3, num_bins=8, passes=2)``
   (sbi 0.27 turns an integer ``hidden_features=h`` into ``[h] * num_transforms`` hidden LAYERS, i.e. three
   layers for three transforms, so the list is given). Both have 136 350 trainable parameters;
 * optimisation: batch 256, learning rate 1e-3, gradient-norm clip 5, ``torch.set_num_threads(--threads)`` on
-  both, ``--epochs`` epochs on both (early stopping off on both, so the epoch budgets are equal);
+  both, ``--epochs`` epochs on both (early stopping off on both, so the epoch budgets are equal); pidc eager and
+  pidc with its training loss compiled (``--pidc eager compiled``: ``TrainingConfig.compile``, what the pipeline
+  turns on from ``train.compile_min_steps`` steps; its compile, from torch's on-disk cache when warm, is inside
+  the timed first epoch);
 * measures: (a) step throughput — samples/s of forward + backward + optimiser step alone, best of 3, fresh
   models; (b) loop throughput — samples trained per wall second of each library's own training loop (its
   own validation, data loading and bookkeeping included, the benchmark's extra evaluation excluded);
-  (c) the validation NLL curve on the SAME val split after every epoch — pidc's own ``val_nll``, and for sbi
-  ``−density_estimator.log_prob(θ, x)`` evaluated by this script from inside sbi's loop (a subclass hook on
-  ``_summarize_epoch``; its time is subtracted); (d) wall time until each first reaches the target
-  NLL = pidc's val NLL after ``--target-epoch`` epochs; (e) the val NLL of the model each library returns.
+  (c) the validation NLL curve on the SAME val split after every epoch, evaluated by this script from inside
+  each loop (pidc's ``train`` callback; for sbi a subclass hook on ``_summarize_epoch``), its time subtracted;
+  (d) wall time until each first reaches two targets: the first pidc run's val NLL after ``--target-epoch``
+  epochs, and the best val NLL that every run reaches (the worst run's best: "at equal validation NLL");
+  (e) the val NLL of the model each library returns.
 
 Units. pidc's ``log_prob`` is a density over θ in physical units (the logit bijection's Jacobian included);
 sbi's flow is over raw θ with a z-score ``UnconditionalTransform`` inside the zuko flow, whose Jacobian the
@@ -38,10 +42,12 @@ Unavoidable differences (all are sbi's defaults, what a user of sbi gets):
   ``P_q`` estimated from ``--leak-samples`` draws per x. ``--sbi-theta transform_to_unconstrained`` runs
   sbi with its logit-type transform to the box instead (without pidc's scaling by 1/Z_SCALE, so near the
   box's faces sbi's logit leaves the splines' [−5, 5] domain);
-* validation: sbi holds out ``validation_fraction = 0.1`` of the 10 000 for its own validation and model
-  selection and trains on the other 9 000 (35 batches, ``drop_last=True``: 8 960 samples per epoch); pidc
-  trains on all 10 000 (40 batches, the last of 16) and validates on the val split (2 000), which it also
-  uses to pick the returned epoch (so pidc's returned NLL is selected on the set it is reported on);
+* validation: sbi holds out a random ``validation_fraction = 0.1`` of the 10 000 for its own validation and
+  model selection and trains on the other 9 000 (35 batches, ``drop_last=True``: 8 960 samples per epoch);
+  pidc holds out the last 1 000 of them for its own (early stopping's) validation and trains on the first
+  9 000 (36 batches, the last of 40). Both validate as many pairs per epoch and neither selects its returned
+  model on the benchmark's val split (until 2026-12-05 pidc validated on the whole val split, 6× sbi's work
+  per epoch, and picked its returned epoch there);
 * optimiser: pidc AdamW (weight decay 1e-4) with a cosine schedule over ``--epochs`` (its pipeline
   defaults, ``params.yaml`` ``train``); sbi Adam at a constant learning rate;
 * sbi's trainer draws its train/val split, shuffling and initial weights from torch's global RNG: the script
@@ -100,6 +106,7 @@ from components.core import (
 )
 from components.features import cache as features
 from components.posterior import NPE, FlowConfig, TrainingConfig, npe_loss, train  # noqa: E402
+from components.posterior.loss import npe_loss_terms
 from components.simulate import dataset
 
 SETUP_HINT = (
@@ -243,6 +250,7 @@ class HookedNPE(SbiNPE):
 
 
 @torch.no_grad()
+@torch.no_grad()
 def pidc_nll(model: NPE, x: Tensor, theta: Tensor) -> float:
     """Mean −log q(θ | x) over the set, nats, physical units."""
     model.eval()
@@ -351,7 +359,9 @@ class Run:
         return None, None
 
 
-def run_pidc(data: Data, args: argparse.Namespace) -> tuple[Run, NPE]:
+def run_pidc(data: Data, args: argparse.Namespace, compiled: bool) -> tuple[Run, NPE]:
+    """pidc's ``train`` as the pipeline runs it; ``compiled``: its training loss compiled by ``torch.compile`` (what
+    ``train.compile_min_steps`` turns on for long trainings), the cold compile inside the measured wall time."""
     p = config.load_params().train
     model = pidc_model(data, args.seed)
     tc = TrainingConfig(
@@ -363,17 +373,25 @@ def run_pidc(data: Data, args: argparse.Namespace) -> tuple[Run, NPE]:
         patience=args.epochs,
         clip_norm=CLIP,
         seed=args.seed,
+        compile=compiled,
     )
-    run = Run("pidc", samples_per_epoch=len(data.x_train))
+    # pidc's own validation (early stopping's and the returned epoch's) is the last share of the training pairs, as
+    # large as sbi's random held-out share: both libraries train on the same number of pairs and validate as many
+    n_own = int(round(args.sbi_validation_fraction * len(data.x_train)))
+    x_fit, th_fit = data.x_train[:-n_own], data.theta_train[:-n_own]
+    x_own, th_own = data.x_train[-n_own:], data.theta_train[-n_own:]
+    run = Run(f"pidc ({'compiled' if compiled else 'eager'})", samples_per_epoch=len(x_fit))
+    excluded = 0.0
     t0 = time.perf_counter()
 
     def record(rec: Any) -> None:
-        run.times.append(time.perf_counter() - t0)
-        run.val_nll.append(rec.val_nll)
+        nonlocal excluded
+        t_end = time.perf_counter()
+        run.times.append(t_end - t0 - excluded)
+        run.val_nll.append(pidc_nll(model, data.x_val, data.theta_val))  # the benchmark's curve: not timed
+        excluded += time.perf_counter() - t_end
 
-    history = train(
-        model, (data.x_train, data.theta_train), (data.x_val, data.theta_val), tc, progress=False, callback=record
-    )
+    history = train(model, (x_fit, th_fit), (x_own, th_own), tc, progress=False, callback=record)
     run.returned_epoch = history.best_epoch + 1
     run.final_nll = run.final_nll_leak_corrected = pidc_nll(model, data.x_val, data.theta_val)
     return run, model
@@ -427,27 +445,37 @@ def run_sbi(data: Data, theta_transform: str, args: argparse.Namespace) -> tuple
     return run, net
 
 
-def step_throughput(data: Data, theta_transform: str, args: argparse.Namespace) -> tuple[float, float]:
-    """Samples/s of forward + backward + clip + optimiser step on batches of 256 (best of 3), pidc and sbi."""
+def step_throughput(data: Data, theta_transform: str, args: argparse.Namespace) -> dict[str, float]:
+    """Samples/s of forward + backward + clip + optimiser step on batches of 256 (best of 3, interleaved, fresh
+    models): pidc eager, pidc with its loss compiled and AdamW fused (as ``train`` with ``compile``; compiled
+    before the timing), and sbi."""
     n = args.step_batches * BATCH
     xs, ths = data.x_train[:n].split(BATCH), data.theta_train[:n].split(BATCH)
-    model = pidc_model(data, args.seed + 1)
-    model.fit_standardization(data.x_train)
-    opt = torch.optim.AdamW(model.parameters(), lr=LR, weight_decay=1e-4)
+    passes: dict[str, Callable[[], None]] = {}
+    for compiled in (False, True):
+        model = pidc_model(data, args.seed + 1)
+        model.fit_standardization(data.x_train)
+        opt = torch.optim.AdamW(model.parameters(), lr=LR, weight_decay=1e-4, fused=compiled or None)
+        if compiled:
+            terms = torch.compile(lambda th, x, model=model: npe_loss_terms(model, th, x)[0], dynamic=False)
+        else:
+            terms = lambda th, x, model=model: npe_loss(model, th, x).loss  # noqa: E731
+
+        def pidc_pass(model: NPE = model, opt: torch.optim.Optimizer = opt, terms: Callable = terms) -> None:
+            model.train()
+            for xb, tb in zip(xs, ths, strict=False):
+                loss = terms(tb, xb)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(model.parameters(), CLIP)
+                opt.step()
+
+        passes[f"pidc ({'compiled' if compiled else 'eager'})"] = pidc_pass
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seeding.derive_seed(args.seed, "bench", "sbi", "step"))
         net = sbi_builder(data.box, theta_transform)(data.theta_train.to(torch.float32), data.x_train)
     sopt = torch.optim.Adam(net.parameters(), lr=LR)
     ths32 = [t.to(torch.float32) for t in ths]
-
-    def pidc_pass() -> None:
-        model.train()
-        for xb, tb in zip(xs, ths, strict=False):
-            loss = npe_loss(model, tb, xb).loss
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), CLIP)
-            opt.step()
 
     def sbi_pass() -> None:
         net.train()
@@ -458,15 +486,16 @@ def step_throughput(data: Data, theta_transform: str, args: argparse.Namespace) 
             torch.nn.utils.clip_grad_norm_(net.parameters(), CLIP)
             sopt.step()
 
-    best = {"pidc": math.inf, "sbi": math.inf}
-    for fn in (pidc_pass, sbi_pass):
-        fn()  # warm-up
-    for _ in range(3):  # interleaved, so that a load change hits both
-        for fn, key in ((pidc_pass, "pidc"), (sbi_pass, "sbi")):
+    passes["sbi"] = sbi_pass
+    best = dict.fromkeys(passes, math.inf)
+    for fn in passes.values():
+        fn()  # warm-up (and the compile)
+    for _ in range(3):  # interleaved, so that a load change hits all
+        for key, fn in passes.items():
             t = time.perf_counter()
             fn()
             best[key] = min(best[key], time.perf_counter() - t)
-    return n / best["pidc"], n / best["sbi"]
+    return {key: n / b for key, b in best.items()}
 
 
 # --- report --------------------------------------------------------------------------------------------
@@ -488,10 +517,12 @@ def ratio(a: float | None, b: float | None) -> float | None:
     return None if a is None or b is None or b == 0 else a / b
 
 
-def print_table(pidc: Run, sbis: list[Run], target: float, target_epoch: int) -> list[dict[str, Any]]:
+def print_table(pidcs: list[Run], sbis: list[Run], targets: dict[str, float]) -> list[dict[str, Any]]:
+    """Print one row per run and the ratios sbi / pidc for each pair; return the rows (ratios inside sbi's rows).
+
+    ``targets``: name → val NLL (nats); each run's wall time and epochs until it first reaches each."""
     rows = []
-    for r in [pidc, *sbis]:
-        t, e = r.time_to(target)
+    for r in [*pidcs, *sbis]:
         rows.append(
             {
                 "library": r.name,
@@ -499,8 +530,8 @@ def print_table(pidc: Run, sbis: list[Run], target: float, target_epoch: int) ->
                 "loop_samples_per_s": r.loop_samples_per_s,
                 "epoch_s": r.times[-1] / len(r.times),
                 "median_epoch_s": r.median_epoch_s,
-                "time_to_target_s": t,
-                "epochs_to_target": e,
+                "time_to_target_s": {k: r.time_to(v)[0] for k, v in targets.items()},
+                "epochs_to_target": {k: r.time_to(v)[1] for k, v in targets.items()},
                 "best_epoch_val_nll": min(r.val_nll),
                 "last_epoch_val_nll": r.val_nll[-1],
                 "returned_epoch": r.returned_epoch,
@@ -510,36 +541,47 @@ def print_table(pidc: Run, sbis: list[Run], target: float, target_epoch: int) ->
                 "total_s": r.times[-1],
             }
         )
-    print(f"\ntarget val NLL = {target:.3f} nats (pidc after {target_epoch} epochs); val NLL in nats, physical units")
+    for k, v in targets.items():
+        print(f"\ntarget {k!r}: val NLL {v:.3f} nats")
+    print("val NLL in nats, physical units; t→target: wall seconds (epochs) until the val NLL first reaches it")
     head = (
-        f"{'library':<32} {'step smp/s':>10} {'loop smp/s':>10} {'s/epoch':>8} {'med s/ep':>8} {'t→target s':>10} {'ep→tgt':>6} "
-        f"{'best NLL':>9} {'last NLL':>9} {'ret ep':>6} {'final NLL':>9} {'final+leak':>10}"
+        f"{'library':<32} {'step smp/s':>10} {'loop smp/s':>10} {'s/epoch':>8} {'med s/ep':>8} "
+        + "".join(f"{'t→' + k:>16}" for k in targets)
+        + f" {'best NLL':>9} {'last NLL':>9} {'ret ep':>6} {'final NLL':>9} {'final+leak':>10}"
     )
     print(head)
     for d in rows:
+        reach = "".join(
+            f"{fmt(d['time_to_target_s'][k], '.1f') + ' (' + fmt(d['epochs_to_target'][k], 'd') + ')':>16}"
+            for k in targets
+        )
         print(
             f"{d['library']:<32} {fmt(d['step_samples_per_s'], ',.0f'):>10} {fmt(d['loop_samples_per_s'], ',.0f'):>10} "
-            f"{d['epoch_s']:>8.2f} {d['median_epoch_s']:>8.2f} {fmt(d['time_to_target_s'], '.1f'):>10} {fmt(d['epochs_to_target'], 'd'):>6} "
+            f"{d['epoch_s']:>8.2f} {d['median_epoch_s']:>8.2f} {reach} "
             f"{d['best_epoch_val_nll']:>9.3f} {d['last_epoch_val_nll']:>9.3f} {d['returned_epoch']:>6d} "
             f"{d['final_val_nll']:>9.3f} {d['final_val_nll_leak_corrected']:>10.3f}"
         )
-    base = rows[0]
-    for d in rows[1:]:
-        d["ratios_sbi_over_pidc"] = {
-            "step_samples_per_s": ratio(d["step_samples_per_s"], base["step_samples_per_s"]),
-            "loop_samples_per_s": ratio(d["loop_samples_per_s"], base["loop_samples_per_s"]),
-            "time_to_target_s": ratio(d["time_to_target_s"], base["time_to_target_s"]),
-            "epoch_s": ratio(d["epoch_s"], base["epoch_s"]),
-            "median_epoch_s": ratio(d["median_epoch_s"], base["median_epoch_s"]),
+    bases = rows[: len(pidcs)]
+    for d in rows[len(pidcs) :]:
+        d["ratios_sbi_over_pidc"] = {}
+        for base in bases:
+            q = {
+                "step_samples_per_s": ratio(d["step_samples_per_s"], base["step_samples_per_s"]),
+                "loop_samples_per_s": ratio(d["loop_samples_per_s"], base["loop_samples_per_s"]),
+                "epoch_s": ratio(d["epoch_s"], base["epoch_s"]),
+                "median_epoch_s": ratio(d["median_epoch_s"], base["median_epoch_s"]),
+                "time_to_target_s": {k: ratio(d["time_to_target_s"][k], base["time_to_target_s"][k]) for k in targets},
+            }
+            d["ratios_sbi_over_pidc"][base["library"]] = q
+            print(
+                f"{'ratio ' + d['library'] + ' / ' + base['library']:<32} {fmt(q['step_samples_per_s'], '.2f'):>10} "
+                f"{fmt(q['loop_samples_per_s'], '.2f'):>10} {fmt(q['epoch_s'], '.2f'):>8} {fmt(q['median_epoch_s'], '.2f'):>8} "
+                + "".join(f"{fmt(q['time_to_target_s'][k], '.2f'):>16}" for k in targets)
+                + "   (samples/s: >1 = sbi faster; times: >1 = sbi slower)"
+            )
+        d["final_val_nll_difference_sbi_minus_pidc"] = {
+            base["library"]: d["final_val_nll_leak_corrected"] - base["final_val_nll"] for base in bases
         }
-        q = d["ratios_sbi_over_pidc"]
-        print(
-            f"{'ratio ' + d['library'] + ' / pidc':<32} {fmt(q['step_samples_per_s'], '.2f'):>10} "
-            f"{fmt(q['loop_samples_per_s'], '.2f'):>10} {fmt(q['epoch_s'], '.2f'):>8} {fmt(q['median_epoch_s'], '.2f'):>8} "
-            f"{fmt(q['time_to_target_s'], '.2f'):>10}"
-            f"   (samples/s: >1 = sbi faster; times: >1 = sbi slower)"
-        )
-        d["final_val_nll_difference_sbi_minus_pidc"] = d["final_val_nll_leak_corrected"] - base["final_val_nll"]
     return rows
 
 
@@ -556,6 +598,13 @@ def main() -> None:
         default=["independent"],
         choices=["independent", "transform_to_unconstrained"],
         help="sbi's z_score_theta variants to run",
+    )
+    p.add_argument(
+        "--pidc",
+        nargs="+",
+        default=["eager", "compiled"],
+        choices=["eager", "compiled"],
+        help="pidc's training loss eager and/or compiled by torch.compile (the cold compile counted)",
     )
     p.add_argument("--sbi-validation-fraction", type=float, default=0.1)
     p.add_argument("--leak-samples", type=int, default=128, help="draws per val x for sbi's leakage correction")
@@ -592,18 +641,28 @@ def main() -> None:
     wall0 = time.perf_counter()
 
     step = {v: step_throughput(data, v, args) for v in args.sbi_theta}
-    print(f"step throughput (samples/s, pidc, sbi): {step}; load {os.getloadavg()[0]:.2f}", flush=True)
-    pidc, model = run_pidc(data, args)
-    print(f"pidc: {len(pidc.times)} epochs in {pidc.times[-1]:.1f} s; load {os.getloadavg()[0]:.2f}", flush=True)
-    pidc.step_samples_per_s = float(np.mean([s[0] for s in step.values()]))
-    target = pidc.val_nll[args.target_epoch - 1]
+    print(f"step throughput (samples/s): {step}; load {os.getloadavg()[0]:.2f}", flush=True)
+    pidcs, models = [], []
+    for variant in args.pidc:
+        r, model = run_pidc(data, args, compiled=variant == "compiled")
+        r.step_samples_per_s = float(np.mean([s[r.name] for s in step.values()]))
+        print(f"{r.name}: {len(r.times)} epochs in {r.times[-1]:.1f} s; load {os.getloadavg()[0]:.2f}", flush=True)
+        pidcs.append(r)
+        models.append(model)
+    model = models[0]
     sbis, nets = [], []
     for v in args.sbi_theta:
         r, net = run_sbi(data, v, args)
-        r.step_samples_per_s = step[v][1]
+        r.step_samples_per_s = step[v]["sbi"]
         print(f"{r.name}: {len(r.times)} epochs in {r.times[-1]:.1f} s; load {os.getloadavg()[0]:.2f}", flush=True)
         sbis.append(r)
         nets.append(net)
+    # two targets: the first pidc run's val NLL after --target-epoch epochs (the historical one), and the best val
+    # NLL that EVERY run reaches (the worst run's best epoch): the quality a user gets from either library
+    targets = {
+        f"{pidcs[0].name} ep {args.target_epoch}": pidcs[0].val_nll[args.target_epoch - 1],
+        "reached by all": max(min(r.val_nll) for r in [*pidcs, *sbis]),
+    }
 
     print("units check: ∫_S q dθ by uniform MC of the density vs the fraction of q's draws in S (should agree)")
     checks = []
@@ -629,7 +688,7 @@ def main() -> None:
             f"  {c['library']:<32} x#{c['x']}: density ∫ {c['density_integral']:.3f}   draws' mass {c['sample_mass']:.3f}"
         )
 
-    rows = print_table(pidc, sbis, target, args.target_epoch)
+    rows = print_table(pidcs, sbis, targets)
     machine = {
         "python": platform.python_version(),
         "torch": torch.__version__,
@@ -644,7 +703,7 @@ def main() -> None:
     }
     curves = {
         r.name: {"time_s": [round(t, 3) for t in r.times], "val_nll": [round(v, 4) for v in r.val_nll]}
-        for r in [pidc, *sbis]
+        for r in [*pidcs, *sbis]
     }
     print(
         json.dumps(
@@ -652,7 +711,7 @@ def main() -> None:
                 "benchmark": "npe_vs_sbi",
                 "settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
                 "machine": machine,
-                "target_val_nll": target,
+                "target_val_nll": targets,
                 "results": rows,
                 "units_check": checks,
                 "curves": curves,

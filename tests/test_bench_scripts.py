@@ -456,3 +456,19 @@ def test_bench_watch_reads_sources_once_with_the_watchs_own_numbers(watch_regist
             np.testing.assert_array_equal(result.windows[key], column, err_msg=key)
         np.testing.assert_array_equal(result.frames["fog_density_median"], plain.frames["fog_density_median"])
         assert result.stated == plain.stated
+
+
+def test_paper_scale_counts_the_profiles_models() -> None:
+    """The paper-scale extrapolation counts the work of the profile's own models: its grid and its variants, with
+    the epochs, flows and samples the train stage would give them."""
+    from benchmarks.studies.bench_paper_scale import DIMS, paper_models
+
+    params = load_params(profile="paper")
+    models = {m["model"]: m for m in paper_models(params)}
+    assert set(DIMS) == set(params.backbones.names)
+    assert len(models) == len(params.backbones.names) * len(params.train.sizes) + len(params.train.variants)
+    big = models["resnet50-500000-ensemble"]
+    assert (big["flows"], big["epochs"], big["samples"]) == (3, 200, 100_000_000)
+    assert models["resnet50-50000-balanced"]["flows"] == 1
+    assert all(m["samples"] == m["epochs"] * m["size"] <= params.train.sample_budget for m in models.values())
+    assert models["clip-5000"]["epochs"] > models["clip-500000"]["epochs"]

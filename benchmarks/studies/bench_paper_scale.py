@@ -261,8 +261,11 @@ def main(argv: list[str] | None = None) -> dict:
         raise SystemExit(f"--pipeline {args.pipeline}: cannot read bench_pipeline's JSON ({err})") from None
     try:
         cores, stages = len(pipe["cpus"]), {st["stage"]: st for st in pipe["stages"]}
+        log = Path(pipe["log"])
     except (KeyError, TypeError):
-        raise SystemExit(f"--pipeline {args.pipeline}: not a run of bench_pipeline.py (no cpus or stages)") from None
+        raise SystemExit(
+            f"--pipeline {args.pipeline}: not a run of bench_pipeline.py (no cpus, stages or log)"
+        ) from None
 
     size = params.simulator.height
     splits = params.data.splits
@@ -282,7 +285,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     # the default pipeline's measured full run: its units
     d_models = len(default.backbones.names) * len(default.train.sizes) + len(default.train.variants)
-    units = evaluation_units(Path(pipe["log"]), default)
+    units = evaluation_units(log, default)
     for m in models:
         m["evaluate_s"] = (
             units["s_per_pass_draw"] * passes(m["flows"]) * splits["test"] * params.evaluate.samples

@@ -1,8 +1,8 @@
-"""pidc's posterior estimator against a standard NPE on three SBI problems with exact reference posteriors (C2ST).
+"""pidc's posterior estimator against a standard NPE on four SBI problems with exact reference posteriors (C2ST).
 
 Problems (``benchmarks/sbi_problems.py``, as in sbibm, Lueckmann et al. 2021): ``gaussian_linear_uniform`` (10-D),
-``two_moons`` (2-D) and ``gaussian_mixture`` (2-D), each with a box-uniform prior and an exactly sampled reference
-posterior; 10 observations per problem drawn from the prior with a fixed seed.
+``two_moons`` (2-D), ``gaussian_mixture`` (2-D) and ``slcp`` (5-D θ, 8-D x), each with a box-uniform prior and an
+exactly sampled reference posterior; 10 observations per problem drawn from the prior with a fixed seed.
 
 For every (problem, simulation budget) the estimator is trained ONCE (amortized) on ``budget`` simulations
 (θ ~ prior, x ~ simulator, a fixed seed per problem and budget) and then sampled ``--samples`` times at each
@@ -32,7 +32,7 @@ an existing file with the same protocol is reused, ``--force`` recomputes); ``--
 files there. Usage, from the repository root::
 
     nice .venv/bin/python benchmarks/bench_sbi_problems.py --estimator pidc [--settings default steps batch]
-        [--problems gaussian_linear_uniform two_moons gaussian_mixture] [--budgets 1000 10000]
+        [--problems gaussian_linear_uniform two_moons gaussian_mixture slcp] [--budgets 1000 10000]
         [--observations 10] [--samples 10000] [--c2st early-stopping|sbibm] [--threads 1]
     nice .venv-sbi/bin/python benchmarks/bench_sbi_problems.py --estimator sbi [same options]
     .venv/bin/python benchmarks/bench_sbi_problems.py --report

@@ -1,4 +1,4 @@
-"""Three standard simulation-based-inference problems with exact reference posteriors, and the C2ST metric.
+"""Four standard simulation-based-inference problems with exact reference posteriors, and the C2ST metric.
 
 The problems follow sbibm (Lueckmann et al., "Benchmarking simulation-based inference", AISTATS 2021), each with a
 box-uniform prior (pidc's estimator needs a bounded box) and a reference posterior that this module samples EXACTLY
@@ -16,6 +16,12 @@ box-uniform prior (pidc's estimator needs a bounded box) and a reference posteri
 * ``gaussian_mixture`` — θ ~ U(−10, 10)², x ~ ½ N(θ, I) + ½ N(θ, 0.01·I) (one component per simulation). The
   posterior is the same mixture centred on x, truncated to the box: component k keeps weight ∝ ½·P_k(box) and is a
   product of one-dimensional truncated normals.
+* ``slcp`` — θ ~ U(−3, 3)⁵, x = four i.i.d. draws from N(m, Σ) with m = (θ₁, θ₂), s₁ = θ₃², s₂ = θ₄², ρ = tanh θ₅,
+  Σ = [[s₁², ρs₁s₂], [ρs₁s₂, s₂²]] (x ∈ ℝ⁸). sbibm's reference is 10 000 MCMC draws at ten fixed observations;
+  here the posterior is sampled exactly by rejection in (m, Σ): the proposal Σ ~ IW(S, 5/2), m | Σ ~ N(x̄, Σ/4)
+  (x̄ and S = Σᵢ(xᵢ − x̄)(xᵢ − x̄)ᵀ of the four draws) leaves the target/proposal ratio (1 − ρ²)^¼ · 1[θ ∈ box] ≤ 1
+  once the prior's Jacobian |∂(m, Σ)/∂θ| = 16 |θ₃θ₄|⁵ (1 − ρ²) is counted (:meth:`SLCP.reference_posterior`);
+  the signs of θ₃ and θ₄, which x cannot see, are fair coins.
 
 Observations: ``n`` per problem, θₒ drawn from the prior and xₒ simulated, from a fixed seed per problem
 (:func:`observations`). The metric is sbibm's classifier two-sample test (:func:`c2st`): accuracy of an MLP telling
@@ -40,6 +46,7 @@ __all__ = [
     "GaussianLinearUniform",
     "TwoMoons",
     "GaussianMixture",
+    "SLCP",
     "PROBLEMS",
     "get_problem",
     "observations",
@@ -243,11 +250,75 @@ class GaussianMixture(Problem):
         return truncated_normal(loc, scale, self.low, self.high, rng)
 
 
+class SLCP(Problem):
+    """sbibm ``slcp`` ("simple likelihood, complex posterior"): θ ~ U(−3, 3)⁵, x = four draws of N(m, Σ(θ)).
+
+    m = (θ₁, θ₂), s₁ = θ₃², s₂ = θ₄², ρ = tanh θ₅ and Σ = [[s₁², ρs₁s₂], [ρs₁s₂, s₂²]]; x = (x₁, y₁, …, x₄, y₄).
+    The posterior has four modes (the signs of θ₃ and θ₄) and is sampled exactly (the module's docstring).
+    """
+
+    draws: int = 4
+    #: ν of the inverse-Wishart proposal: the smallest that bounds the target/proposal ratio (module docstring).
+    proposal_df: float = 2.5
+
+    def __init__(self) -> None:
+        super().__init__("slcp", np.full(5, -3.0), np.full(5, 3.0), 2 * self.draws)
+
+    def simulate(self, theta: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        s1, s2, rho = theta[:, 2:3] ** 2, theta[:, 3:4] ** 2, np.tanh(theta[:, 4:5])
+        z = rng.standard_normal((len(theta), self.draws, 2))
+        x = theta[:, None, 0] + s1 * z[..., 0]
+        y = theta[:, None, 1] + s2 * (rho * z[..., 0] + np.sqrt(1 - rho**2) * z[..., 1])
+        return np.stack([x, y], axis=-1).reshape(len(theta), self.x_dim)
+
+    def log_likelihood(self, theta: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """Σ over the four draws of log N(xᵢ; m, Σ), by the standardized pair (a, b) of each draw."""
+        pts = np.asarray(x).reshape(*np.shape(x)[:-1], self.draws, 2)
+        s1, s2 = theta[..., 2:3] ** 2, theta[..., 3:4] ** 2
+        rho = np.tanh(theta[..., 4:5])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            a = (pts[..., 0] - theta[..., 0:1]) / s1
+            b = ((pts[..., 1] - theta[..., 1:2]) / s2 - rho * a) / np.sqrt(1 - rho**2)
+            log_p = -0.5 * (a**2 + b**2) - math.log(2 * math.pi) - np.log(s1 * s2) - 0.5 * np.log1p(-(rho**2))
+        return np.sum(log_p, axis=-1)
+
+    def reference_posterior(self, x: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+        return self.reference_posterior_with_rate(x, n, rng)[0]
+
+    def reference_posterior_with_rate(
+        self, x: np.ndarray, n: int, rng: np.random.Generator
+    ) -> tuple[np.ndarray, float]:
+        """Draws ``(n, 5)`` by rejection from (Σ ~ IW(S, 5/2), m | Σ ~ N(x̄, Σ/4)), and the acceptance rate."""
+        from scipy.stats import invwishart
+
+        pts = np.asarray(x, float).reshape(self.draws, 2)
+        mean = pts.mean(axis=0)
+        scatter = (pts - mean).T @ (pts - mean)
+        out: list[np.ndarray] = []
+        proposed = kept = 0
+        while kept < n:
+            size = max(4 * (n - kept), 4096)
+            cov = invwishart(df=self.proposal_df, scale=scatter).rvs(size=size, random_state=rng).reshape(size, 2, 2)
+            m = mean + np.einsum("nij,nj->ni", np.linalg.cholesky(cov / self.draws), rng.standard_normal((size, 2)))
+            s1, s2 = np.sqrt(cov[:, 0, 0]), np.sqrt(cov[:, 1, 1])
+            rho = cov[:, 0, 1] / (s1 * s2)
+            with np.errstate(divide="ignore"):
+                theta5 = np.arctanh(rho)
+            signs = np.where(rng.uniform(size=(size, 2)) < 0.5, -1.0, 1.0)
+            theta = np.column_stack([m, signs[:, 0] * np.sqrt(s1), signs[:, 1] * np.sqrt(s2), theta5])
+            ok = self.in_box(theta) & (rng.uniform(size=size) < (1 - rho**2) ** 0.25)
+            proposed += size
+            kept += int(ok.sum())
+            out.append(theta[ok])
+        return np.concatenate(out)[:n], kept / proposed
+
+
 #: sbibm's names → the problems, in the order of the tables.
 PROBLEMS: dict[str, type[Problem]] = {
     "gaussian_linear_uniform": GaussianLinearUniform,
     "two_moons": TwoMoons,
     "gaussian_mixture": GaussianMixture,
+    "slcp": SLCP,
 }
 
 

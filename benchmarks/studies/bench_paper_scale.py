@@ -342,8 +342,8 @@ def main(argv: list[str] | None = None) -> dict:
         "features_gib": {b: n_images * d * 4 / GIB for b, d in DIMS.items()},
     }
     per_model = {
-        m["model"]: (2 * m["size"] + splits["val"]) * DIMS[m["backbone"]] * 4 / GIB for m in models
-    }  # the train prefix (twice while its shards are joined) and the val split
+        m["model"]: (m["size"] + splits["val"]) * DIMS[m["backbone"]] * 4 / GIB for m in models
+    }  # the train prefix and the val split, each held once (open_features joins its shards in place)
     memory = {
         "train_per_model_gib": per_model,
         "train_all_models_at_once_gib": sum(per_model.values()),

@@ -197,21 +197,39 @@ def open_features(root: str | Path, backbone: str, split: Split, *, stop: int | 
     stop = len(split) if stop is None else stop
     if not 0 <= stop <= len(split):
         raise FeatureError(f"split {split.name!r} has {len(split)} images, asked for the first {stop}")
-    parts, have = [], 0
+    # each shard is mapped, not read, and copied into one array of the final size: the features are in memory once
+    # (a join by concatenation held them twice for a moment; docs/studies/paper-scale.md)
+    out: np.ndarray | None = None
+    have = 0
     for k in range(len(split.shard_files)):
         if have >= stop:
             break
+        path = store.shard_path(split.name, k)
         if not shard_features_done(store, split, k, manifest["fingerprint"]):
-            raise FeatureError(
-                f"{store.shard_path(split.name, k)}: missing or stale; run `dvc repro features@{backbone}`"
-            )
+            raise FeatureError(f"{path}: missing or stale; run `dvc repro features@{backbone}`")
         try:
-            a = np.load(store.shard_path(split.name, k), allow_pickle=False)
+            shard = np.load(path, mmap_mode="r", allow_pickle=False)
         except (OSError, ValueError, EOFError) as e:
-            raise FeatureError(f"{store.shard_path(split.name, k)}: unreadable ({e})") from None
-        parts.append(a[: stop - have])
-        have += len(parts[-1])
-    return np.concatenate(parts) if parts else np.zeros((0, *manifest["splits"][split.name]["shape"]), np.float32)
+            raise FeatureError(f"{path}: unreadable ({e})") from None
+        if out is None:
+            out = np.empty((stop, *shard.shape[1:]), shard.dtype)
+        elif shard.shape[1:] != out.shape[1:] or shard.dtype != out.dtype:
+            raise FeatureError(
+                f"{path}: rows of shape {shard.shape[1:]} {shard.dtype}, where the split's first shard has "
+                f"{out.shape[1:]} {out.dtype}; run `dvc repro features@{backbone}`"
+            )
+        take = min(len(shard), stop - have)
+        out[have : have + take] = shard[:take]
+        del shard  # closes the map
+        have += take
+    if out is None:
+        return np.zeros((0, *manifest["splits"][split.name]["shape"]), np.float32)
+    if have < stop:
+        raise FeatureError(
+            f"{store.folder / split.name}: the shards hold {have} rows, the split {split.name!r} {stop} images; "
+            f"run `dvc repro features@{backbone}`"
+        )
+    return out
 
 
 def posterior_inputs(backbone, images: np.ndarray, batch_size: int = 256) -> np.ndarray:

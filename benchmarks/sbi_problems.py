@@ -264,8 +264,13 @@ class SLCP(Problem):
     def __init__(self) -> None:
         super().__init__("slcp", np.full(5, -3.0), np.full(5, 3.0), 2 * self.draws)
 
+    @staticmethod
+    def spread(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(s₁, s₂, ρ) of θ ``(..., 5)``, each ``(..., 1)``: the standard deviations and correlation of x's draws."""
+        return theta[..., 2:3] ** 2, theta[..., 3:4] ** 2, np.tanh(theta[..., 4:5])
+
     def simulate(self, theta: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        s1, s2, rho = theta[:, 2:3] ** 2, theta[:, 3:4] ** 2, np.tanh(theta[:, 4:5])
+        s1, s2, rho = self.spread(theta)
         z = rng.standard_normal((len(theta), self.draws, 2))
         x = theta[:, None, 0] + s1 * z[..., 0]
         y = theta[:, None, 1] + s2 * (rho * z[..., 0] + np.sqrt(1 - rho**2) * z[..., 1])
@@ -274,8 +279,7 @@ class SLCP(Problem):
     def log_likelihood(self, theta: np.ndarray, x: np.ndarray) -> np.ndarray:
         """Σ over the four draws of log N(xᵢ; m, Σ), by the standardized pair (a, b) of each draw."""
         pts = np.asarray(x).reshape(*np.shape(x)[:-1], self.draws, 2)
-        s1, s2 = theta[..., 2:3] ** 2, theta[..., 3:4] ** 2
-        rho = np.tanh(theta[..., 4:5])
+        s1, s2, rho = self.spread(theta)
         with np.errstate(divide="ignore", invalid="ignore"):
             a = (pts[..., 0] - theta[..., 0:1]) / s1
             b = ((pts[..., 1] - theta[..., 1:2]) / s2 - rho * a) / np.sqrt(1 - rho**2)

@@ -28,7 +28,8 @@ with scikit-learn's ``early_stopping=True`` (10 % of each training fold held out
 gain): ~25× cheaper on the 10-D problem, where the full protocol costs ~90 s per test on a shared 2-core machine.
 
 Each (estimator, setting, problem, budget) writes one JSON file into ``--out`` (``benchmarks/results/sbi_problems``;
-an existing file with the same protocol is reused, ``--force`` recomputes); ``--report`` prints the table of all the
+an existing file with the same protocol and, for pidc, the same flow and training settings is reused, ``--force``
+recomputes); ``--report`` prints the table of all the
 files there. Usage, from the repository root::
 
     nice .venv/bin/python benchmarks/bench_sbi_problems.py --estimator pidc [--settings default steps batch]
@@ -41,7 +42,8 @@ Prints a table (C2ST median and mean ± std over the observations, training seco
 from sbi when its files are there, and one JSON line with the settings, the machine and every figure. Figures of
 2026-11-23 (``--samples 5000``) and the recommended change of the training defaults (``steps-small``, adopted as
 ``train.scale_to``): docs/studies/sbi-problems.md; the floor of epochs for few input features
-(``train.few_features_epochs``): docs/studies/sbi-small-inputs.md.
+(``train.few_features_epochs``): docs/studies/sbi-small-inputs.md; sbi's recipe below 300 training simulations per
+parameter (``train.few_features_recipe``): docs/studies/few-features-recipe.md.
 """
 
 from __future__ import annotations
@@ -192,9 +194,9 @@ SETTINGS: dict[str, tuple[str, Rule]] = {
 }
 
 
-def default_configs(params: Any, n_train: int, x_dim: int, seed: int) -> tuple[Any, Any]:
+def default_configs(params: Any, n_train: int, x_dim: int, theta_dim: int, seed: int) -> tuple[Any, Any]:
     """The pipeline's ``(FlowConfig, TrainingConfig)`` for ``n_train`` training simulations of ``x_dim``-dimensional
-    observations: ``params.yaml``'s
+    observations and ``theta_dim``-dimensional parameters: ``params.yaml``'s
     ``train:`` section (``params``, a loaded :class:`components.core.config.Params`) through
     :mod:`components.posterior.settings`, as ``flows/train.py`` builds them for cached features of ``n_train`` images
     (the small-data rule of ``train.scale_to`` included)."""
@@ -204,13 +206,22 @@ def default_configs(params: Any, n_train: int, x_dim: int, seed: int) -> tuple[A
 
     # no temperature is fitted on these problems (they have no validation split of the pipeline's kind), so no regime
     flow = dataclasses.replace(flow_config(params.train, size=n_train, trainable=False), regime_temperature=False)
-    return flow, training_config(params.train, size=n_train, trainable=False, features=x_dim, seed=seed)
+    return flow, training_config(
+        params.train, size=n_train, trainable=False, features=x_dim, parameters=theta_dim, seed=seed
+    )
 
 
 def pidc_configs(setting: str, n_train: int, base: tuple[Any, Any]) -> tuple[Any, Any]:
     """``(FlowConfig, TrainingConfig)`` of a setting: its rule applied to the defaults ``base`` for ``n_train``
     training simulations."""
     return SETTINGS[setting][1](n_train, *base)
+
+
+def pidc_setting_configs(problem: Problem, n_train: int, args: argparse.Namespace, setting: str) -> tuple[Any, Any]:
+    """``(FlowConfig, TrainingConfig)`` of pidc's ``setting`` on ``problem`` with ``n_train`` training simulations:
+    the defaults of ``params.yaml`` (:func:`default_configs`) through the setting's rule."""
+    base = default_configs(args.pidc_params, n_train, problem.x_dim, problem.dim, args.seed)
+    return pidc_configs(setting, n_train, base)
 
 
 def run_pidc(
@@ -223,8 +234,7 @@ def run_pidc(
     from components.posterior import NPE, train
 
     train_set, val_set = sims.split(args.val_fraction)
-    base = default_configs(args.pidc_params, len(train_set.theta), problem.x_dim, args.seed)
-    flow_cfg, train_cfg = pidc_configs(setting, len(train_set.theta), base)
+    flow_cfg, train_cfg = pidc_setting_configs(problem, len(train_set.theta), args, setting)
     box = weather.Box(problem.low, problem.high)
     model = NPE(None, problem.x_dim, box, flow_cfg, seed=args.seed)
     t0 = time.perf_counter()
@@ -344,15 +354,34 @@ def protocol(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def same_settings(
+    record: dict[str, Any],
+    problem: Problem,
+    sims: Simulations,
+    estimator: str,
+    setting: str,
+    args: argparse.Namespace,
+) -> bool:
+    """Whether a result file was trained with the flow and training settings a run would use now: for pidc, its
+    recorded configs against ``params.yaml``'s through the setting (a file from before a change of defaults is
+    recomputed, not reused); sbi's NPE has no settings of ours."""
+    if estimator == "sbi":
+        return True
+    n_train = len(sims.split(args.val_fraction)[0].theta)
+    flow_cfg, train_cfg = pidc_setting_configs(problem, n_train, args, setting)
+    now = json.loads(json.dumps({"flow": asdict(flow_cfg), "training": asdict(train_cfg)}))
+    return {"flow": record.get("flow"), "training": record.get("training")} == now
+
+
 def run_cell(problem: Problem, budget: int, estimator: str, setting: str, args: argparse.Namespace) -> dict[str, Any]:
     """Train one estimator on one (problem, budget), score it at every observation, write and return the record."""
     path = args.out / f"{label(estimator, setting)}__{problem.name}__{budget}.json"
+    sims = simulate(problem, budget, args.seed)
     if path.is_file() and not args.force:
         old = json.loads(path.read_text())
-        if old.get("protocol") == protocol(args):
+        if old.get("protocol") == protocol(args) and same_settings(old, problem, sims, estimator, setting, args):
             print(f"  {path.name}: reused", flush=True)
             return old
-    sims = simulate(problem, budget, args.seed)
     theta_obs, x_obs = observations(problem, args.observations, args.seed)
     runner = run_sbi if estimator == "sbi" else run_pidc
     draws, info = runner(problem, sims, x_obs, args, setting)

@@ -134,6 +134,7 @@ def _new_model(
         size=size,
         trainable=backbone.trainable,
         features=backbone.dim,
+        parameters=len(params.box.names),
         seed=seeding.derive_seed(params.seed, "train") % 2**31,
         balance=variant.balance if variant else None,
         ensemble=ensemble,

@@ -181,3 +181,33 @@ def test_rules_leave_the_10k_budget_unchanged() -> None:
     assert bench.pidc_configs("batch-small", 900, base)[0].hidden_features == (48, 48)
     flow, training = bench.pidc_configs("steps-small", 900, base)
     assert flow.hidden_features == (48, 48) and (training.epochs, training.patience) == (600, 100)
+
+
+def test_a_result_of_other_settings_is_not_reused():
+    """``run_cell`` reuses a pidc result file only when its flow and training settings are today's: the 10-D
+    Gaussian's 1k record trained before ``train.few_features_recipe`` (the same params with it null) is stale, one
+    of today's settings is current, another setting's is not; sbi's files carry no settings of ours."""
+    import argparse
+    import json
+    from dataclasses import asdict
+
+    from components.core.config import PROJECT_ROOT, load_params
+
+    params = load_params(PROJECT_ROOT / "params.yaml")
+    before_params = params.model_copy(update={"train": params.train.model_copy(update={"few_features_recipe": None})})
+    problem = sp.get_problem("gaussian_linear_uniform")
+    sims = bench.simulate(problem, 1000, 0)
+    n_train = len(sims.split(0.1)[0].theta)
+
+    def record(p, setting):
+        args = argparse.Namespace(pidc_params=p, seed=0, val_fraction=0.1)
+        flow, training = bench.pidc_setting_configs(problem, n_train, args, setting)
+        return json.loads(json.dumps({"flow": asdict(flow), "training": asdict(training), "c2st": [0.7]}))
+
+    args = argparse.Namespace(pidc_params=params, seed=0, val_fraction=0.1)
+    before, now = record(before_params, "default"), record(params, "default")
+    assert before["training"]["schedule"] == "cosine" and now["training"]["schedule"] == "constant"
+    assert not bench.same_settings(before, problem, sims, "pidc", "default", args)
+    assert bench.same_settings(now, problem, sims, "pidc", "default", args)
+    assert not bench.same_settings(now, problem, sims, "pidc", "sbi-train", args)  # sbi-train runs 2000 epochs
+    assert bench.same_settings({"c2st": [0.7]}, problem, sims, "sbi", "sbi", args)

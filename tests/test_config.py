@@ -180,6 +180,8 @@ MISSING = [
     "train.input_noise_max_size",
     "train.input_noise_min_features",
     "train.few_features_epochs",
+    "train.few_features_recipe",
+    "train.few_features_recipe.patience",
     "train.compile_min_steps",
     "train.mirror",
     "train.ensemble_min_size",
@@ -524,7 +526,7 @@ def test_settings_set_every_field_of_the_library_classes(profile, trainable, mon
     flow_kw = _recorded(monkeypatch, settings, "FlowConfig")
     train_kw = _recorded(monkeypatch, settings, "TrainingConfig")
     flow = settings.flow_config(t, size=max(t.sizes), trainable=trainable)
-    cfg = settings.training_config(t, size=t.sizes[0], trainable=trainable, features=273, seed=11)
+    cfg = settings.training_config(t, size=t.sizes[0], trainable=trainable, features=273, parameters=6, seed=11)
     assert set(flow_kw) == {f.name for f in dataclasses.fields(FlowConfig)}
     assert set(train_kw) == {f.name for f in dataclasses.fields(TrainingConfig)}
     assert dataclasses.asdict(flow) == {
@@ -563,7 +565,7 @@ def test_epochs_follow_the_sample_budget(trainable):
     assert all(1 <= e <= math.ceil(cap * s) for e, s in zip(epochs, scale, strict=True))
     assert all((e - 1) * n < budget for e, n in zip(epochs, sizes, strict=True))  # the last epoch may overrun
     assert epochs == sorted(epochs, reverse=True) and epochs[-1] == 1
-    assert training_config(t, size=5000, trainable=trainable, features=273, seed=1).epochs == epochs[3]
+    assert training_config(t, size=5000, trainable=trainable, features=273, parameters=6, seed=1).epochs == epochs[3]
     for bad in (0, -3, 2.5, True):
         with pytest.raises(ValueError, match="size must be a positive integer"):
             epochs_for(t, bad, trainable=trainable)
@@ -610,7 +612,7 @@ def test_input_noise_only_on_many_features():
     assert noise[:4] == [0.0] * 4 and noise[4] == noise[5] == pytest.approx(
         t.input_noise * math.sqrt(t.scale_to / 1000)
     )
-    assert training_config(t, size=1000, trainable=False, features=2, seed=0).input_noise == 0.0
+    assert training_config(t, size=1000, trainable=False, features=2, parameters=6, seed=0).input_noise == 0.0
     for bad in (0, -1, 2.5, True):
         with pytest.raises(ValueError, match="features must be a positive integer"):
             input_noise_for(t, 1000, trainable=False, features=bad)
@@ -631,7 +633,7 @@ def test_ensembles_from_their_minimum_size():
 
     one = t3.input_noise * math.sqrt(t3.scale_to / 20000)
     assert input_noise_for(t3, 20000, trainable=False, features=273) == pytest.approx(one)
-    two = training_config(t3, size=20000, trainable=False, features=273, seed=0, ensemble=2)
+    two = training_config(t3, size=20000, trainable=False, features=273, parameters=6, seed=0, ensemble=2)
     assert two.input_noise == pytest.approx(one)
     assert all(ensemble_for(t, n) == (t.flow.ensemble if n >= t.ensemble_min_size else 1) for n in t.sizes)
     with pytest.raises(ValueError, match="size must be a positive integer"):
@@ -647,7 +649,7 @@ def test_models_of_many_steps_compile_their_training_loss():
         for trainable in (False, True):
             steps = epochs_for(t, size, trainable=trainable) * math.ceil(size / t.batch_size)
             assert compile_for(t, size, trainable=trainable) == (steps >= t.compile_min_steps)
-            assert training_config(t, size=size, trainable=trainable, features=273, seed=0).compile == (
+            assert training_config(t, size=size, trainable=trainable, features=273, parameters=6, seed=0).compile == (
                 steps >= t.compile_min_steps
             )
     assert compile_for(t, max(t.sizes), trainable=False)  # the default grid's largest frozen-feature models compile

@@ -29,19 +29,25 @@ def _many_features_epochs(t, size: int, floor: int = 0) -> int:
 @pytest.mark.parametrize("profile", PROFILES)
 def test_pipeline_models_train_as_without_the_rule(profile):
     """Every size of the grid (and a few more) with 64–2048 features: the epochs of the rule of many features, the
-    same configs with the rule switched off (``few_features_epochs: null``), whatever the feature count."""
+    same configs with the rules switched off (``few_features_epochs`` and ``few_features_recipe`` null), whatever the
+    feature count."""
     from components.features.backbones import get_backbone
     from components.posterior.settings import epochs_for, flow_config, training_config
 
-    t = load_params(PROJECT_ROOT / "params.yaml", profile=profile).train
-    off = t.model_copy(update={"few_features_epochs": None})
+    params = load_params(PROJECT_ROOT / "params.yaml", profile=profile)
+    t, parameters = params.train, len(params.box.names)
+    off = t.model_copy(update={"few_features_epochs": None, "few_features_recipe": None})
     dims = {get_backbone(name).dim for name in ("cues", "tiny")} | {t.input_noise_min_features, 384, 1280, 2048}
     assert min(dims) >= t.input_noise_min_features
     for size in sorted({*t.sizes, 100, 1000, 3000, t.scale_to, 10 * t.scale_to}):
         for features in sorted(dims):
             for trainable in (False, True):
-                on_cfg = training_config(t, size=size, trainable=trainable, features=features, seed=3)
-                off_cfg = training_config(off, size=size, trainable=trainable, features=features, seed=3)
+                on_cfg = training_config(
+                    t, size=size, trainable=trainable, features=features, parameters=parameters, seed=3
+                )
+                off_cfg = training_config(
+                    off, size=size, trainable=trainable, features=features, parameters=parameters, seed=3
+                )
                 assert on_cfg == off_cfg, (size, features, trainable)
                 if not trainable:
                     assert on_cfg.epochs == _many_features_epochs(t, size) == epochs_for(t, size, trainable=False)
@@ -65,7 +71,7 @@ def test_few_features_train_at_least_their_epochs():
     assert epochs_for(t, 1000, trainable=False, features=2) == epochs_for(t, 1000, trainable=False, features=d)
     assert epochs_for(t, 9000, trainable=False, features=2) == floor > epochs_for(t, 9000, trainable=False, features=d)
     assert epochs_for(t, 9000, trainable=True, features=2) == epochs_for(t, 9000, trainable=True, features=d)
-    cfg = training_config(t, size=9000, trainable=False, features=2, seed=0)
+    cfg = training_config(t, size=9000, trainable=False, features=2, parameters=6, seed=0)
     assert cfg.epochs == floor and cfg.input_noise == 0.0
     off = t.model_copy(update={"few_features_epochs": None})
     assert epochs_for(off, 9000, trainable=False, features=2) == epochs_for(t, 9000, trainable=False, features=d)
@@ -84,7 +90,81 @@ def test_the_benchmark_uses_the_rule():
 
     params = load_params(PROJECT_ROOT / "params.yaml")
     t = params.train
-    flow, training = bench.default_configs(params, 9000, 2, seed=0)
+    flow, training = bench.default_configs(params, 9000, 2, 2, seed=0)
     assert training.epochs == t.few_features_epochs and training.input_noise == 0.0
     assert dataclasses.replace(flow, regime_temperature=False) == flow
-    assert bench.default_configs(params, 900, 2, seed=0)[1].epochs == math.ceil(t.epochs * t.scale_to / 900)
+    assert bench.default_configs(params, 900, 2, 2, seed=0)[1].epochs == math.ceil(t.epochs * t.scale_to / 900)
+
+
+def test_few_features_recipe_applies_below_its_images_per_parameter():
+    """``train.few_features_recipe`` replaces batch, rate, weight decay, schedule and patience exactly when the model
+    has few frozen features and fewer than ``size_per_parameter`` × d training images: the 10-D Gaussian's 900 and
+    1 800 (d = 10), not two_moons' 900 (d = 2) nor anything at 9 000; never a trainable backbone or many features.
+    The patience is the recipe's (not × s), the epochs stay the cap of :func:`epochs_for`, the compile decision
+    counts the recipe's batches; null switches it off."""
+    from components.posterior.settings import compile_for, epochs_for, recipe_for, training_config
+
+    t = load_params(PROJECT_ROOT / "params.yaml").train
+    r = t.few_features_recipe
+    assert r is not None and r.schedule == "constant" and r.patience is not None
+    few, many = 10, t.input_noise_min_features
+    limit = r.size_per_parameter * 10
+    for size, features, d, trainable, applies in [
+        (900, few, 10, False, True),
+        (1800, few, 10, False, True),
+        (limit - 1, few, 10, False, True),
+        (limit, few, 10, False, False),
+        (900, 2, 2, False, False),
+        (9000, few, 10, False, False),
+        (900, many, 10, False, False),
+        (900, few, 10, True, False),
+    ]:
+        cfg = training_config(t, size=size, trainable=trainable, features=features, parameters=d, seed=0)
+        assert (recipe_for(t, size, trainable=trainable, features=features, parameters=d) is not None) == applies
+        if applies:
+            assert (cfg.batch_size, cfg.lr, cfg.weight_decay, cfg.schedule, cfg.patience) == (
+                r.batch_size,
+                r.lr,
+                r.weight_decay,
+                r.schedule,
+                r.patience,
+            )
+            steps = epochs_for(t, size, trainable=False, features=features) * math.ceil(size / r.batch_size)
+            assert cfg.compile == (steps >= t.compile_min_steps)
+        else:
+            assert (cfg.batch_size, cfg.lr, cfg.weight_decay, cfg.schedule) == (
+                t.batch_size,
+                t.lr,
+                t.weight_decay,
+                t.schedule,
+            )
+        assert cfg.epochs == epochs_for(t, size, trainable=trainable, features=features)
+    off = t.model_copy(update={"few_features_recipe": None})
+    assert recipe_for(off, 900, trainable=False, features=few, parameters=10) is None
+    assert training_config(off, size=900, trainable=False, features=few, parameters=10, seed=0).lr == t.lr
+    assert compile_for(t, 900, trainable=False, features=few, batch_size=r.batch_size) == (
+        epochs_for(t, 900, trainable=False, features=few) * math.ceil(900 / r.batch_size) >= t.compile_min_steps
+    )
+    for bad in (0, -2, 1.5, True):
+        with pytest.raises(ValueError, match="parameters must be a positive integer"):
+            recipe_for(t, 900, trainable=False, features=few, parameters=bad)
+
+
+def test_the_benchmark_gets_the_recipe_on_the_10d_gaussian_at_1k():
+    """``bench_sbi_problems.py``'s defaults for gaussian_linear_uniform at 1 000 simulations (900 to train, x and θ of
+    10 dimensions) are the recipe's; two_moons' (2 and 2) are ``train``'s."""
+    import sys
+
+    sys.path.insert(0, str(PROJECT_ROOT / "benchmarks"))
+    import bench_sbi_problems as bench
+
+    params = load_params(PROJECT_ROOT / "params.yaml")
+    r = params.train.few_features_recipe
+    glu = bench.default_configs(params, 900, 10, 10, seed=0)[1]
+    moons = bench.default_configs(params, 900, 2, 2, seed=0)[1]
+    assert (glu.lr, glu.schedule, glu.patience, glu.batch_size) == (r.lr, r.schedule, r.patience, r.batch_size)
+    assert (moons.lr, moons.schedule, moons.batch_size) == (
+        params.train.lr,
+        params.train.schedule,
+        params.train.batch_size,
+    )

@@ -387,6 +387,26 @@ class TemperatureRegimeConfig(_Section):
     """an input lies in the regime when its ``parameter`` is below this value (physical units, inside the prior)"""
 
 
+class FewFeaturesRecipeConfig(_Section):
+    """How a model of few features and few training images per parameter trains: sbi's NPE recipe, a constant rate
+    and early stopping (components/posterior/settings.py; study: docs/studies/few-features-recipe.md)."""
+
+    size_per_parameter: PositiveInt
+    """the recipe applies below this many training images per dimension of θ (and below
+    ``input_noise_min_features`` features); at and above it, ``train``'s own settings"""
+    batch_size: PositiveInt
+    """training examples per optimizer step"""
+    lr: Annotated[Real, Field(gt=0)]
+    """the learning rate of AdamW"""
+    weight_decay: Annotated[Real, Field(ge=0)]
+    """AdamW's decoupled weight decay"""
+    schedule: Literal["cosine", "plateau", "constant"]
+    """the learning-rate schedule (``train.schedule``'s choices)"""
+    patience: PositiveInt
+    """early stopping after this many epochs without improvement of the validation loss (not scaled by s; the epochs
+    of :func:`~components.posterior.settings.epochs_for` stay the cap)"""
+
+
 class TrainConfig(_Section):
     """The grid of models (backbone × training size) and how each is trained."""
 
@@ -451,6 +471,11 @@ class TrainConfig(_Section):
     """a model of fewer than ``input_noise_min_features`` frozen features trains at least this many epochs (still
     capped by ``sample_budget``): a few informative inputs keep improving long after the image models' ``epochs``;
     null: the images' rule for every input (components/posterior/settings.py; study: docs/studies/sbi-small-inputs.md)"""
+    few_features_recipe: FewFeaturesRecipeConfig | None
+    """a model of few features (below ``input_noise_min_features``) and fewer than ``size_per_parameter`` training
+    images per parameter trains with this recipe instead (its batch, rate, weight decay, schedule and patience); null:
+    ``train``'s settings for every model. No model of the pipeline has few features
+    (study: docs/studies/few-features-recipe.md)"""
     mirror: StrictBool
     """train on each input or its mirror image's with probability ½ (a left-right mirror leaves the weather and the
     sun and wind azimuths unchanged in law, the scenes nearly; components/posterior/train.py); the backbones'

@@ -19,7 +19,7 @@ from components.posterior.temperature import Regime
 from components.posterior.train import TrainingConfig
 
 if TYPE_CHECKING:
-    from components.core.config import TrainConfig
+    from components.core.config import FewFeaturesRecipeConfig, TrainConfig
     from components.core.weather import Box
 
 __all__ = [
@@ -28,6 +28,7 @@ __all__ = [
     "temperature_regime",
     "epochs_for",
     "few_features",
+    "recipe_for",
     "patience_for",
     "hidden_for",
     "input_noise_for",
@@ -174,18 +175,48 @@ def input_noise_for(train_section: TrainConfig, size: int, *, trainable: bool, f
     return float(train_section.input_noise) * math.sqrt(train_section.scale_to / size)
 
 
-def compile_for(train_section: TrainConfig, size: int, *, trainable: bool, features: int | None = None) -> bool:
+def compile_for(
+    train_section: TrainConfig,
+    size: int,
+    *,
+    trainable: bool,
+    features: int | None = None,
+    batch_size: int | None = None,
+) -> bool:
     """Whether a model of ``size`` training images (of ``features`` frozen features, as :func:`epochs_for`) compiles
     its training loss (``TrainingConfig.compile``): when it
-    takes at least ``train.compile_min_steps`` optimizer steps (:func:`epochs_for` × ⌈size / batch_size⌉). The
+    takes at least ``train.compile_min_steps`` optimizer steps (:func:`epochs_for` × ⌈size / batch_size⌉;
+    ``batch_size``: the model's, ``train.batch_size`` when not given). The
     compilation costs 35–50 s once per model shape (later processes reuse inductor's disk cache) and takes a
     256-sample step of the cues flow from 18.6 to 11.0 ms on one thread: it pays from a few thousand steps
     (``benchmarks/bench_compile.py``, docs/studies/compiled-training.md)."""
     t = train_section
+    batch_size = t.batch_size if batch_size is None else batch_size
     if t.compile_min_steps is None:
         return False
-    steps = epochs_for(t, size, trainable=trainable, features=features) * math.ceil(size / t.batch_size)
+    steps = epochs_for(t, size, trainable=trainable, features=features) * math.ceil(size / batch_size)
     return steps >= t.compile_min_steps
+
+
+def recipe_for(
+    train_section: TrainConfig, size: int, *, trainable: bool, features: int, parameters: int
+) -> FewFeaturesRecipeConfig | None:
+    """``train.few_features_recipe`` when it applies to a model of ``size`` training images, ``features`` frozen
+    features and ``parameters`` dimensions of θ: :func:`few_features`, frozen, and fewer than
+    ``size_per_parameter`` × ``parameters`` images; else None (``train``'s own batch, rate, weight decay, schedule and
+    patience).
+
+    Few images of a few informative numbers, measured on sbibm's problems: the defaults' long cosine schedule with
+    weight decay peaks early (the 10-D Gaussian's 900 simulations: its best epoch 23 of 667) and loses to sbi's NPE
+    (C2ST +0.027 ± 0.014 over 10 observations), while sbi's recipe on the same flow is level (−0.002 ± 0.014); with
+    more images per parameter (two_moons' 450 at 1k, any problem at 10k) the defaults win, by up to 0.146
+    (docs/studies/few-features-recipe.md)."""
+    whole_number("size", size, low=1)
+    whole_number("parameters", parameters, low=1)
+    r = train_section.few_features_recipe
+    if r is None or trainable or not few_features(train_section, features):
+        return None
+    return r if size < r.size_per_parameter * parameters else None
 
 
 def training_config(
@@ -194,35 +225,39 @@ def training_config(
     size: int,
     trainable: bool,
     features: int,
+    parameters: int,
     seed: int,
     balance: float | None = None,
     ensemble: int | None = None,
 ) -> TrainingConfig:
     """The training settings of ``train`` for a model of ``size`` training images of ``features`` input features
-    (the backbone's dimension): :func:`epochs_for` epochs, :func:`input_noise_for` noise (both depend on
-    :func:`few_features`); ``seed`` is the caller's;
+    (the backbone's dimension) predicting ``parameters`` dimensions of θ: :func:`epochs_for` epochs,
+    :func:`input_noise_for` noise (both depend on :func:`few_features`), the batch, rate, weight decay, schedule and
+    patience of :func:`recipe_for` where it applies; ``seed`` is the caller's;
     ``balance`` and ``ensemble`` (a variant's) replace ``train.balance`` and the flows of :func:`ensemble_for`."""
     t = train_section
+    r = recipe_for(t, size, trainable=trainable, features=features, parameters=parameters)
+    batch_size = t.batch_size if r is None else r.batch_size
     return TrainingConfig(
         **_every_field(
             TrainingConfig,
             dict(
                 epochs=epochs_for(t, size, trainable=trainable, features=features),
-                batch_size=t.batch_size,
-                lr=t.lr,
-                weight_decay=t.weight_decay,
-                schedule=t.schedule,
-                min_lr=t.min_lr,
+                batch_size=batch_size,
+                lr=t.lr if r is None else r.lr,
+                weight_decay=t.weight_decay if r is None else r.weight_decay,
+                schedule=t.schedule if r is None else r.schedule,
+                min_lr=t.min_lr if r is None else min(t.min_lr, r.lr),
                 plateau_factor=t.plateau_factor,
                 plateau_patience=t.plateau_patience,
-                patience=patience_for(t, size),
+                patience=patience_for(t, size) if r is None else r.patience,
                 min_delta=t.min_delta,
                 clip_norm=t.clip_norm,
                 seed=seed,
                 balance=t.balance if balance is None else balance,
                 input_noise=input_noise_for(t, size, trainable=trainable, features=features),
                 mirror=t.mirror,
-                compile=compile_for(t, size, trainable=trainable, features=features),
+                compile=compile_for(t, size, trainable=trainable, features=features, batch_size=batch_size),
             ),
         )
     )

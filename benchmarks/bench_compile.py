@@ -45,11 +45,20 @@ def worker(args: argparse.Namespace) -> None:
     size = args.size
     x, theta = synthetic(size + 2000, args.features, 0)
     config = dataclasses.replace(
-        training_config(params.train, size=size, trainable=False, features=args.features, seed=0),
+        training_config(
+            params.train, size=size, trainable=False, features=args.features, parameters=len(params.box.names), seed=0
+        ),
         epochs=args.epochs,
         compile=args.worker != "eager",
     )
-    model = NPE(None, args.features, params.box, flow_config(params.train, size=size, trainable=False), seed=0)
+    model = NPE(
+        None,
+        args.features,
+        params.box,
+        flow_config(params.train, size=size, trainable=False),
+        parameters=len(params.box.names),
+        seed=0,
+    )
     history = train(model, (x[:size], theta[:size]), (x[size:], theta[size:]), config, progress=False)
     print(json.dumps({"epochs": history.wall_time, "steps_per_epoch": -(-size // config.batch_size)}))
 

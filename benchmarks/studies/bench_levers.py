@@ -158,14 +158,21 @@ def fit(
         fc = dataclasses.replace(fc, context_layers=s["context_layers"])
     chosen = {k: s[k] for k in ("epochs", "lr", "weight_decay") if s[k] is not None}  # else the pipeline's
     tc = dataclasses.replace(
-        training_config(params.train, size=s["size"], trainable=False, features=x["train"].shape[1], seed=seed),
+        training_config(
+            params.train,
+            size=s["size"],
+            trainable=False,
+            features=x["train"].shape[1],
+            parameters=len(params.box.names),
+            seed=seed,
+        ),
         input_noise=s["noise"],
         mirror=s["mirror"],
         **chosen,
     )
     if device != "cpu" or not compile:  # the pipeline's compile rule is for its CPU (inductor's C++ kernels)
         tc = dataclasses.replace(tc, compile=False)
-    model = NPE(None, x["train"].shape[1], params.box, fc, seed=seed).to(device)
+    model = NPE(None, x["train"].shape[1], params.box, fc, parameters=len(params.box.names), seed=seed).to(device)
     t0 = time.perf_counter()
     history = train(model, (x["train"], theta["train"]), (x["val"], theta["val"]), tc, mirror=mirror)
     model.eval()

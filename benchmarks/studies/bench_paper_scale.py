@@ -194,7 +194,9 @@ def train_rate(params: config.Params, dim: int, size: int, batches: int, epochs:
     thread, after its first epoch (the compile), on synthetic pairs."""
     t = params.train
     flow = flow_config(t, size=size, trainable=False, ensemble=1)
-    cfg = training_config(t, size=size, trainable=False, features=dim, seed=seed, ensemble=1)
+    cfg = training_config(
+        t, size=size, trainable=False, features=dim, parameters=len(params.box.names), seed=seed, ensemble=1
+    )
     cfg = dataclasses.replace(cfg, epochs=epochs, patience=None)
     g = seeding.rng(seed, "paper-scale", "train", dim, size)
     n = batches * cfg.batch_size
@@ -224,7 +226,15 @@ def paper_models(params: config.Params) -> list[dict]:
     out = []
     for model_id, backbone, size, flows in grid:
         epochs = epochs_for(t, size, trainable=False, features=DIMS[backbone])
-        cfg = training_config(t, size=size, trainable=False, features=DIMS[backbone], seed=0, ensemble=flows)
+        cfg = training_config(
+            t,
+            size=size,
+            trainable=False,
+            features=DIMS[backbone],
+            parameters=len(params.box.names),
+            seed=0,
+            ensemble=flows,
+        )
         out.append(
             {
                 "model": model_id,

@@ -157,8 +157,15 @@ def test_weathers(params, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def fit(params, x: dict[str, np.ndarray], theta: dict[str, np.ndarray], size: int) -> NPE:
     """A cues NPE with the pipeline's settings for ``size`` training images, its temperature fitted as the pipeline."""
     fc = flow_config(params.train, size=size, trainable=False)
-    tc = training_config(params.train, size=size, trainable=False, features=x["train"].shape[1], seed=params.seed)
-    model = NPE(None, x["train"].shape[1], params.box, fc, seed=params.seed)
+    tc = training_config(
+        params.train,
+        size=size,
+        trainable=False,
+        features=x["train"].shape[1],
+        parameters=len(params.box.names),
+        seed=params.seed,
+    )
+    model = NPE(None, x["train"].shape[1], params.box, fc, parameters=len(params.box.names), seed=params.seed)
     xt = {k: torch.as_tensor(v) for k, v in x.items()}
     tt = {k: torch.as_tensor(v) for k, v in theta.items()}
     train(model, (xt["train"], tt["train"]), (xt["val"], tt["val"]), tc, progress=False)

@@ -140,7 +140,7 @@ def train_hybrid(
     cnn = FullResolutionCNN(widths=widths or WIDTHS).to(device)
     fc = dataclasses.replace(flow_config(params.train, size=len(images), trainable=True), standardize=False)
     width = cnn.head.out_features + (cues.shape[1] if with_cues else 0)
-    flow = NPE(None, width, params.box, fc, seed=seed).to(device)
+    flow = NPE(None, width, params.box, fc, parameters=len(params.box.names), seed=seed).to(device)
     parameters = [*cnn.parameters(), *flow.parameters()]
     opt = torch.optim.AdamW(parameters, lr=params.train.lr, weight_decay=params.train.weight_decay)
     batch = params.train.batch_size
@@ -231,7 +231,9 @@ def _parse(name: str, epochs: int, params) -> tuple[str, int, int, bool, dict | 
 def pipeline_setting(params, size: int) -> dict:
     """The pipeline's settings of a cues model of ``size`` images (``components.posterior.settings``: its flows, input
     noise and temperature) as a ``bench_levers.py`` setting."""
-    noise = training_config(params.train, size=size, trainable=False, features=CuesBackbone.dim, seed=0).input_noise
+    noise = training_config(
+        params.train, size=size, trainable=False, features=CuesBackbone.dim, parameters=len(params.box.names), seed=0
+    ).input_noise
     s = parse_setting(f"cues-v4-{size}-ens{ensemble_for(params.train, size)}")
     return {**s, "noise": noise, "temperature": params.train.temperature}
 

@@ -1,12 +1,14 @@
 """Train the weather reader's sun head on the reader's frozen convolutions and write its weights and card.
 
     python scripts/train_sun_head.py [--images 100000] [--validation 4000] [--epochs 15] [--root-seed 9001]
-        [--seed SEED] [--workers N] [--cache DIR]
+        [--faces 0] [--face-validation 2000] [--seed SEED] [--workers N] [--cache DIR]
 
 Renders ``--images`` training images, the plan of the dataset's ``train`` split under root seed ``--root-seed``, and
 ``--validation`` images of the ``val`` split's plan under ``--root-seed`` + 1 (the pipeline's splits use
 ``params.yaml``'s seed; the two must differ from it), with the embedded renderer as the ``generate`` stage renders
-(``images_per_scene`` images a scene). Each image and its mirror go through the frozen convolutions of
+(``images_per_scene`` images a scene); ``--faces`` adds that many training images of the prior's clear-sky face
+(:data:`FACE`, root seed ``--root-seed`` + 100) and scores the head on ``--face-validation`` more (+ 101) beside the
+validation. Each image and its mirror go through the frozen convolutions of
 :func:`components.features.backbones.weather_reader.load_reader`;
 :class:`~components.features.backbones.weather_reader.SunHead` learns the sun's altitude from both maps by Gaussian
 negative log likelihood (AdamW, one-cycle learning rate, batch order and initial weights from ``--seed``), and the epoch
@@ -33,6 +35,7 @@ import components  # noqa: E402,F401  first, before numpy: it pins numpy's SIMD 
 import json  # noqa: E402
 import math  # noqa: E402
 import time  # noqa: E402
+from types import SimpleNamespace  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
@@ -50,6 +53,17 @@ SUN = PREDICTED.index("sun_altitude_angle")
 CHUNK = 64
 #: images rendered at a time (≈ 0.8 GB of images), and per file of ``--cache``
 BLOCK = 25000
+#: the clear-sky face of the prior (``--faces``): CARLA's ClearNoon (cloudiness 5, fog 2, no rain or deposits) and its
+#: neighbours, where the fog's airlight, the uniform images' strongest cue of the sun, is missing; wind and the sun's
+#: altitude range over the whole box (docs/studies/sun-head-faces.md)
+FACE: dict[str, tuple[float, float]] = {
+    "cloudiness": (0.0, 20.0),
+    "fog_density": (0.0, 5.0),
+    "precipitation": (0.0, 5.0),
+    "precipitation_deposits": (0.0, 10.0),
+}
+#: the face plans' root seeds: ``--root-seed`` + this (train) and + this + 1 (validation)
+FACE_SEED_OFFSET = 100
 
 
 def maps(net: wr.WeatherReader, images: np.ndarray) -> np.ndarray:
@@ -69,22 +83,32 @@ def maps(net: wr.WeatherReader, images: np.ndarray) -> np.ndarray:
 
 
 def rendered_maps(
-    params, net: wr.WeatherReader, split: str, n: int, root_seed: int, workers: int, cache: Path | None
+    params,
+    net: wr.WeatherReader,
+    split: str,
+    n: int,
+    root_seed: int,
+    workers: int,
+    cache: Path | None,
+    faces: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Maps ``(n, 2, C·16)`` and θ ``(n, 6)`` of the first ``n`` images of ``split``'s plan under ``root_seed``,
-    rendered and read :data:`BLOCK` images at a time (only the maps are kept); a block is read from ``cache`` when it
-    holds it for this reader (plans are nested prefixes: a larger ``--images`` reuses the blocks of a smaller one)."""
+    """Maps ``(n, 2, C·16)`` and θ ``(n, 6)`` of the first ``n`` images of ``split``'s plan under ``root_seed``
+    (θ uniform on ``params.box``, or with ``faces`` on its clear-sky face :data:`FACE`), rendered and read
+    :data:`BLOCK` images at a time (only the maps are kept); a block is read from ``cache`` when it holds it for this
+    reader (plans are nested prefixes: a larger ``--images`` reuses the blocks of a smaller one)."""
     reader = json.loads(wr.CARD.read_text())["sha256"][:12]
+    kind = "sun_head-faces" if faces else "sun_head"
+    plan = face_params(params) if faces else params
     out_m, out_theta = [], []
     for start in range(0, n, BLOCK):
         stop = min(start + BLOCK, n)
-        path = cache / f"sun_head-{split}-{root_seed}-{start}-{stop}-{reader}.npz" if cache is not None else None
+        path = cache / f"{kind}-{split}-{root_seed}-{start}-{stop}-{reader}.npz" if cache is not None else None
         cached = path is not None and path.is_file()
         if cached:
             with np.load(path) as z:
                 m, theta = z["maps"], z["theta"]
         else:
-            images, theta = render_split(params, split, stop - start, workers, seed=root_seed, start=start)
+            images, theta = render_split(plan, split, stop - start, workers, seed=root_seed, start=start)
             m = maps(net, images)
             del images
             if path is not None:
@@ -94,10 +118,18 @@ def rendered_maps(
         out_m.append(m)
         out_theta.append(theta)
         print(
-            f"{split}: maps of images {start}–{stop - 1} ({'cache' if cached else 'rendered'})",
+            f"{split}{' (faces)' if faces else ''}: maps of images {start}–{stop - 1} ({'cache' if cached else 'rendered'})",
             flush=True,
         )
     return np.concatenate(out_m), np.concatenate(out_theta)
+
+
+def face_params(params):
+    """``params`` with the prior box narrowed to the clear-sky face :data:`FACE` (what :func:`render_split` reads)."""
+    box = Box.from_mapping(
+        {**{n: (lo, hi) for n, lo, hi in zip(params.box.names, params.box.low, params.box.high, strict=True)}, **FACE}
+    )
+    return SimpleNamespace(box=box, seed=params.seed, data=params.data, simulator=params.simulator)
 
 
 def unit_sun(theta: np.ndarray) -> torch.Tensor:
@@ -190,9 +222,24 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--root-seed", type=int, default=9001, help="root seed of the training plan (+1: validation)")
     default = ",".join(map(str, wr.SUN_HIDDEN))
     ap.add_argument("--hidden", default=default, help=f"hidden units of the head's layers (default {default})")
+    ap.add_argument(
+        "--faces",
+        type=int,
+        default=0,
+        help="training images of the clear-sky face added to --images (root seed --root-seed + 100; default 0)",
+    )
+    ap.add_argument(
+        "--face-validation",
+        type=int,
+        default=2000,
+        help="images of the clear-sky face scored beside the validation (root seed --root-seed + 101; with --faces)",
+    )
     a = parse(ap, argv)
+    if a.faces < 0 or (a.faces and a.face_validation < 2):
+        ap.error(f"--faces must be >= 0 and --face-validation >= 2, got {a.faces} and {a.face_validation}")
     params = load_params(ROOT / "params.yaml")
-    if params.seed in (a.root_seed, a.root_seed + 1):
+    face_seed = a.root_seed + FACE_SEED_OFFSET
+    if params.seed in (a.root_seed, a.root_seed + 1) or (a.faces and params.seed in (face_seed, face_seed + 1)):
         ap.error(
             f"--root-seed {a.root_seed}: its plans would be the pipeline's own images (params.yaml seed {params.seed})"
         )
@@ -206,7 +253,12 @@ def main(argv: list[str] | None = None) -> None:
     net = wr.load_reader()
     m, theta = rendered_maps(params, net, "train", a.images, a.root_seed, a.workers, a.cache)
     vm, vtheta = rendered_maps(params, net, "val", a.validation, a.root_seed + 1, a.workers, a.cache)
-    print(f"rendered and read {a.images} + {a.validation} images in {time.perf_counter() - t0:.0f} s", flush=True)
+    if a.faces:
+        fm, ftheta = rendered_maps(params, net, "train", a.faces, face_seed, a.workers, a.cache, faces=True)
+        fvm, fvtheta = rendered_maps(params, net, "val", a.face_validation, face_seed + 1, a.workers, a.cache, True)
+        m, theta = np.concatenate([m, fm]), np.concatenate([theta, ftheta])
+        del fm
+    print(f"rendered and read {len(m)} + {a.validation} images in {time.perf_counter() - t0:.0f} s", flush=True)
     head, best_epoch = train_head(
         m,
         theta,
@@ -227,7 +279,16 @@ def main(argv: list[str] | None = None) -> None:
         "reader_sha256": json.loads(wr.CARD.read_text())["sha256"],
     }
     data = {"plans": {"train": a.root_seed, "val": a.root_seed + 1}, "images_per_scene": params.data.images_per_scene}
-    save(head, a, network, figures(head, net, vm, vtheta), t0, argv, "train_sun_head.py", data=data)
+    scores = figures(head, net, vm, vtheta)
+    if a.faces:
+        data["faces"] = {
+            "images": a.faces,
+            "validation": a.face_validation,
+            "box": {k: list(v) for k, v in FACE.items()},
+            "plans": {"train": face_seed, "val": face_seed + 1},
+        }
+        network["validation_faces"] = figures(head, net, fvm, fvtheta)
+    save(head, a, network, scores, t0, argv, "train_sun_head.py", data=data)
 
 
 if __name__ == "__main__":

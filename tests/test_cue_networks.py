@@ -320,9 +320,29 @@ def test_sun_head_training_script_writes_weights_its_card_accepts(tmp_path: Path
     assert set(card["validation"]) == {"sun_head", "reader"}
     assert card["sha256"] == json.loads((tmp_path / "b" / "weather_reader_sun.json").read_text())["sha256"]
     wr.load_sun_head(out, out.with_suffix(".json"))
+    # --faces: the clear-sky face's images join the training set; the card names their plans and scores the head there
+    faces = tmp_path / "c" / "weather_reader_sun.pt"
+    done = subprocess.run(
+        [*cmd, str(faces), "--faces", "8", "--face-validation", "4"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    card = json.loads(faces.with_suffix(".json").read_text())
+    assert card["data"]["faces"]["plans"] == {"train": 111, "val": 112} and card["data"]["faces"]["images"] == 8
+    assert card["data"]["faces"]["box"]["fog_density"] == [0.0, 5.0]
+    assert set(card["validation_faces"]) == {"sun_head", "reader"}
+    assert card["sha256"] != json.loads(out.with_suffix(".json").read_text())["sha256"]  # other data, other weights
+    with np.load(next((tmp_path / "cache").glob("sun_head-faces-train-111-0-8-*.npz"))) as z:
+        assert z["theta"].shape == (8, 6) and (z["theta"][:, 1] <= 5.0).all() and (z["theta"][:, 0] <= 20.0).all()
+    wr.load_sun_head(faces, faces.with_suffix(".json"))
     seed = load_params(ROOT / "params.yaml").seed
     for bad, message in (
         (["--root-seed", str(seed)], "its plans would be the pipeline's own images"),
+        (["--faces", "-1"], "--faces must be >= 0"),
+        (["--root-seed", str(seed - 100), "--faces", "4"], "its plans would be the pipeline's own images"),
         (["--hidden", "0"], "--hidden must be positive integers"),
         (["--hidden", "a"], "--hidden must be comma-separated integers"),
     ):

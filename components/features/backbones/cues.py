@@ -334,7 +334,8 @@ class CuesBackbone(Backbone):
     # 5: the wet road by distance (the detector's weights are in the fingerprint too)
     # 6: the weather reader, and the wet-road detector retrained on 100 000 images
     # 7: the reader's sun head (a second head on its convolutions, for the sun's altitude)
-    version: ClassVar[str] = "7"
+    # 8: the sun head retrained with 60 000 more images of the clear-sky face (docs/studies/sun-head-faces.md)
+    version: ClassVar[str] = "8"
     dim: int = len(FEATURE_NAMES)
     trainable: bool = False
     input_size: tuple[int, int] = (128, 128)

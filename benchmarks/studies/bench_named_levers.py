@@ -245,24 +245,25 @@ def _train_ensemble(params_file: Path, paths: ProjectPaths, flows: int, logger: 
 def _extra_set(kind: str, n: int, params_file: Path, paths: ProjectPaths, out: Path) -> tuple[np.ndarray, np.ndarray]:
     """``n`` new training pairs ``(x (n, F) float32, θ (n, 6) float32)`` of ``kind`` (``boundary``: θ ~ B;
     ``uniform``: θ ~ U), rendered 8 to a new scene (scene seeds ``derive_seed(seed, "scene", "named-levers", kind,
-    j)``, azimuth uniform) and read by the cues; kept in ``out/extra-<kind>-<n>.npz``."""
+    j)``, azimuth uniform) and read by the cues; kept in ``out/extra-<kind>-<n>-<fingerprint>.npz`` (another version
+    of the cues reads them again)."""
     from components.core import seeding, weather
     from components.features.backbones import get_backbone
     from components.features.cache import posterior_inputs
     from components.features.options import backbone_options
     from components.simulate.base import make_simulator
 
-    kept = out / f"extra-{kind}-{n}.npz"
+    params = load_params(params_file)
+    backbone = get_backbone(CELL[0], **backbone_options(CELL[0], params, paths.root))
+    kept = out / f"extra-{kind}-{n}-{backbone.fingerprint()[:12]}.npz"
     if kept.is_file():
         z = np.load(kept)
         return z["x"], z["theta"]
-    params = load_params(params_file)
     box, seed = params.box, params.seed
     g = seeding.rng(seed, "named-levers", kind, "theta")
     theta = boundary_draws(g, box, n) if kind == "boundary" else box.sample(g, n)
     azimuth = weather.sample_azimuth(seeding.rng(seed, "named-levers", kind, "azimuth"), n)
     simulator = make_simulator(params.simulator)
-    backbone = get_backbone(CELL[0], **backbone_options(CELL[0], params, paths.root))
     x = np.empty((n, backbone.dim), dtype=np.float32)
     from tqdm import tqdm
 

@@ -1,14 +1,15 @@
 """Does the weather reader's frozen convolution read the sun under a clear, haze-free sky? A sun head trained there.
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/studies/bench_sun_head_faces.py [--images 60000] [--validation 2000]
-        [--uniform-cache DIR] [--head LABEL=PATH ...] [--scenes 96] [--workers 2] [--epochs 15] [--out DIR]
+        [--uniform-validation 4000] [--head LABEL=PATH ...] [--scenes 96] [--workers 2] [--epochs 15] [--out DIR]
 
 Renders ``--images`` training and ``--validation`` validation images of the prior's *clear-sky face*
 (``train_sun_head.FACE``: cloudiness 0–20 %, fog 0–5 %, precipitation 0–5 %, deposits 0–10 %, wind and sun over their
 whole ranges; the face plans of ``train_sun_head.py --faces``, root seeds 9101 and 9102, scenes the pipeline never
 uses), passes them through the reader's frozen convolutions and reports each sun head's daytime error (median
 |μ − altitude| of its mirror-averaged guess, by 18° bin) on that validation set, on the uniform plan's validation
-(``--uniform-cache``: the maps ``train_sun_head.py --cache`` kept) and on CARLA's ClearNoon (45°) over ``--scenes``
+(``train_sun_head.py``'s, root seed 9002; ``--out``/cache holds the maps of both, in ``train_sun_head.py --cache``'s
+files) and on CARLA's ClearNoon (45°) over ``--scenes``
 of the named weathers' scenes, at their 0° azimuth and at uniform azimuths. The heads: the shipped one, any
 ``--head LABEL=PATH`` (e.g. an earlier version's weights), and one trained here on the face images alone (the
 probe: is the sun in the frozen convolutions at the face?). Writes ``faces.json`` into ``--out``.
@@ -65,16 +66,6 @@ def clear_noon_maps(params, net, scenes: int) -> dict[str, tuple[np.ndarray, np.
     return out
 
 
-def uniform_maps(cache: Path, split: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """The uniform plan's maps that ``train_sun_head.py --cache`` kept (root seed 9001 train / 9002 val), or None."""
-    seed = 9001 if split == "train" else 9002
-    files = sorted(cache.glob(f"sun_head-{split}-{seed}-*.npz"), key=lambda p: int(p.stem.split("-")[3]))
-    if not files:
-        return None
-    parts = [np.load(p) for p in files]
-    return np.concatenate([z["maps"] for z in parts]), np.concatenate([z["theta"] for z in parts])
-
-
 def day_errors(head: wr.SunHead, m: np.ndarray, theta: np.ndarray) -> dict:
     """Daytime median |μ − altitude| (°) of ``head`` on maps ``m``: overall and by 18° bin, with counts."""
     box = Box.full()
@@ -94,14 +85,17 @@ def day_errors(head: wr.SunHead, m: np.ndarray, theta: np.ndarray) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--images", type=int, default=20000)
+    ap.add_argument("--images", type=int, default=60000)
     ap.add_argument("--validation", type=int, default=2000)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--epochs", type=int, default=15)
     ap.add_argument("--scenes", type=int, default=96, help="ClearNoon scenes (the named weathers' first 24 and more)")
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument(
-        "--uniform-cache", type=Path, default=None, help="train_sun_head.py's --cache: score on its validation"
+        "--uniform-validation",
+        type=int,
+        default=4000,
+        help="images of the uniform plan's validation (train_sun_head.py's, root seed 9002) to score on",
     )
     ap.add_argument("--head", action="append", default=[], help="LABEL=PATH: another sun head to score (repeatable)")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "sun_head_faces")
@@ -114,7 +108,7 @@ def main() -> None:
     m, theta = rendered_maps(params, net, "train", a.images, seed, a.workers, cache, faces=True)
     vm, vtheta = rendered_maps(params, net, "val", a.validation, seed + 1, a.workers, cache, faces=True)
     print(f"face maps: {len(m)} + {len(vm)} in {time.perf_counter() - t0:.0f} s", flush=True)
-    uni_val = uniform_maps(a.uniform_cache, "val") if a.uniform_cache else None
+    uni_val = rendered_maps(params, net, "val", a.uniform_validation, 9002, a.workers, cache)
     heads = {"shipped": wr.load_sun_head()}
     for spec in a.head:
         label, _, path = spec.partition("=")
@@ -129,8 +123,7 @@ def main() -> None:
         rows[name] = {"faces": day_errors(head, vm, vtheta)}
         for label, (cm, ct) in noon.items():
             rows[name][label] = day_errors(head, cm, ct)["day"]
-        if uni_val is not None:
-            rows[name]["uniform"] = day_errors(head, *uni_val)
+        rows[name]["uniform"] = day_errors(head, *uni_val)
         print(name, json.dumps(rows[name]), flush=True)
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / "faces.json").write_text(

@@ -237,17 +237,17 @@ def training_config(
     ``balance`` and ``ensemble`` (a variant's) replace ``train.balance`` and the flows of :func:`ensemble_for`."""
     t = train_section
     r = recipe_for(t, size, trainable=trainable, features=features, parameters=parameters)
-    batch_size = t.batch_size if r is None else r.batch_size
+    rule = t if r is None else r  # where batch, rate, weight decay and schedule come from
     return TrainingConfig(
         **_every_field(
             TrainingConfig,
             dict(
                 epochs=epochs_for(t, size, trainable=trainable, features=features),
-                batch_size=batch_size,
-                lr=t.lr if r is None else r.lr,
-                weight_decay=t.weight_decay if r is None else r.weight_decay,
-                schedule=t.schedule if r is None else r.schedule,
-                min_lr=t.min_lr if r is None else min(t.min_lr, r.lr),
+                batch_size=rule.batch_size,
+                lr=rule.lr,
+                weight_decay=rule.weight_decay,
+                schedule=rule.schedule,
+                min_lr=min(t.min_lr, rule.lr),
                 plateau_factor=t.plateau_factor,
                 plateau_patience=t.plateau_patience,
                 patience=patience_for(t, size) if r is None else r.patience,
@@ -257,7 +257,7 @@ def training_config(
                 balance=t.balance if balance is None else balance,
                 input_noise=input_noise_for(t, size, trainable=trainable, features=features),
                 mirror=t.mirror,
-                compile=compile_for(t, size, trainable=trainable, features=features, batch_size=batch_size),
+                compile=compile_for(t, size, trainable=trainable, features=features, batch_size=rule.batch_size),
             ),
         )
     )

@@ -138,6 +138,7 @@ def _new_model(
         seed=seeding.derive_seed(params.seed, "train") % 2**31,
         balance=variant.balance if variant else None,
         ensemble=ensemble,
+        spared=backbone.spared_index(),
     )
     model_seed = seeding.derive_seed(params.seed, "model", model_id) % 2**31
     if backbone.trainable:

@@ -543,8 +543,11 @@ def test_settings_set_every_field_of_the_library_classes(profile, trainable, mon
         "patience",
         "input_noise",
         "compile",
+        "spared",  # the backbone's (none given here)
+        "spared_noise",  # train.input_noise_spared
     }
     assert {k: getattr(cfg, k) for k in same} == {k: getattr(t, k) for k in same}
+    assert cfg.spared == () and cfg.spared_noise == t.input_noise_spared
     assert cfg.patience == settings.patience_for(t, t.sizes[0])
     assert cfg.input_noise == settings.input_noise_for(t, t.sizes[0], trainable=trainable, features=273)
     assert cfg.epochs == settings.epochs_for(t, t.sizes[0], trainable=trainable) and cfg.seed == 11

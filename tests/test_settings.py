@@ -168,3 +168,24 @@ def test_the_benchmark_gets_the_recipe_on_the_10d_gaussian_at_1k():
         params.train.schedule,
         params.train.batch_size,
     )
+
+
+def test_spared_features_get_their_share_of_the_noise():
+    """The cues' sun head (μ and log σ, the last two cues) is the training config's ``spared``, its noise
+    ``train.input_noise_spared`` of the others'; a trainable backbone (no input noise) spares none; a backbone
+    without such features (the tiny) has none to name."""
+    from components.features.backbones import get_backbone
+    from components.features.backbones.cues import FEATURE_NAMES
+    from components.posterior.settings import training_config
+
+    t = load_params(PROJECT_ROOT / "params.yaml").train
+    cues, tiny = get_backbone("cues"), get_backbone("tiny")
+    spared = cues.spared_index()
+    assert [FEATURE_NAMES[i] for i in spared] == ["reader_sun_head_mean", "reader_sun_head_log_sd"]
+    assert spared == (cues.dim - 2, cues.dim - 1) and tiny.spared_index() == ()
+    for share in (0.0, 0.5, 1.0):
+        tt = t.model_copy(update={"input_noise_spared": share})
+        common = dict(size=5000, features=cues.dim, parameters=6, seed=0, spared=spared)
+        frozen = training_config(tt, trainable=False, **common)
+        assert frozen.input_noise > 0 and frozen.spared == spared and frozen.spared_noise == share
+        assert training_config(tt, trainable=True, **common).spared == ()

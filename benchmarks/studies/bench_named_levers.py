@@ -22,7 +22,12 @@ test images, the sun at ClearNoon) — the same images, draws and seeds for ever
   U(θ) / q̃(θ) of the training law q̃ = (1 − s)·U + s·B (s the extra images' share, :func:`boundary_weight`), so
   that the posterior stays relative to the uniform prior; the same sample budget as the champion (3 M pairs: 43 epochs
   of 70 000), its input noise and validation;
-- ``more-uniform`` — the control of ``boundary``: the same with the extra images drawn from U (unweighted).
+- ``more-uniform`` — the control of ``boundary``: the same with the extra images drawn from U (unweighted);
+- ``estimate-noise-S`` — the champion's cell trained as the pipeline trains it (its model seed and draws), with the
+  input noise on every estimate of θ among the cues (the weather reader's and its sun head's μ and log σ: the fourteen
+  ``reader_*`` columns) S times the other features' (S in [0, 1]), theirs unchanged;
+- ``sun-noise-S`` — the same with the share on the sun head's two columns alone (the reader's twelve keep the noise:
+  :meth:`~components.features.backbones.base.Backbone.spared_index`; ``train.input_noise_spared`` is S).
 
 A lever's model and its evaluation are kept under ``--out`` (a rerun reuses them). Prints the ablation table and one
 JSON line with every figure and the machine.
@@ -38,6 +43,7 @@ import components  # noqa: F401  first, before numpy: it pins numpy's SIMD kerne
 # isort: on
 import argparse
 import copy
+import dataclasses
 import json
 import logging
 import math
@@ -67,7 +73,18 @@ RIDGE = (1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)
 #: the boundary law B: each parameter lies in the lowest (highest) SLAB of its range with probability FACE each
 FACE, SLAB = 0.25, 0.10
 #: the levers this script knows
-LEVERS = ("base", "tau-head", "ensemble-4", "ensemble-4-tau-head", "boundary", "more-uniform")
+LEVERS = (
+    "base",
+    "tau-head",
+    "ensemble-4",
+    "ensemble-4-tau-head",
+    "boundary",
+    "more-uniform",
+    "estimate-noise-S",
+    "sun-noise-S",
+)
+#: the noise levers: their prefix → the estimates whose noise they share out (all of them, or the sun head's)
+NOISE_LEVERS = {"estimate-noise-": "all", "sun-noise-": "sun"}
 
 
 def boundary_draws(g: np.random.Generator, box, n: int) -> np.ndarray:
@@ -185,6 +202,29 @@ def fit_context_temperature(model: NPE, x: Tensor, theta: Tensor) -> tuple[NPE, 
     return out, report
 
 
+def estimates(backbone) -> tuple[int, ...]:
+    """Every estimate of θ among the cues: the indices of the weather reader's and its sun head's columns."""
+    from components.features.backbones.cues import FEATURE_NAMES
+
+    if backbone.name != "cues":
+        raise ValueError(f"the estimate-noise levers need the cues, not {backbone.name!r}")
+    return tuple(i for i, name in enumerate(FEATURE_NAMES) if name.startswith("reader_"))
+
+
+def estimate_share(lever: str) -> tuple[str, float]:
+    """(which estimates, S) of the lever ``estimate-noise-S`` or ``sun-noise-S``; ``ValueError`` naming the lever
+    unless it is one with 0 ≤ S ≤ 1."""
+    for prefix, which in NOISE_LEVERS.items():
+        if lever.startswith(prefix):
+            try:
+                share = float(lever.removeprefix(prefix))
+            except ValueError:
+                break
+            if 0 <= share <= 1:
+                return which, share
+    raise ValueError(f"lever {lever!r}: expected estimate-noise-S or sun-noise-S with S in [0, 1], e.g. sun-noise-0")
+
+
 def _scratch(out: Path) -> tuple[Path, ProjectPaths]:
     """The scratch project: ``params.yaml`` copied, ``data`` and ``features`` linked to the project's."""
     root = out / "project"
@@ -211,20 +251,38 @@ def _export(model: NPE, paths: ProjectPaths, model_id: str) -> None:
         export_posterior(model.cpu().eval(), paths.registry / model_id, card=_card(model_id))
 
 
-def _train_ensemble(params_file: Path, paths: ProjectPaths, flows: int, logger: logging.Logger) -> NPE:
-    """The champion's cell with ``flows`` flows, trained as ``flows.train`` trains a variant (checkpoint kept)."""
+def _train_ensemble(
+    params_file: Path,
+    paths: ProjectPaths,
+    flows: int | None,
+    logger: logging.Logger,
+    *,
+    share: tuple[str, float] | None = None,
+) -> NPE:
+    """The champion's cell with ``flows`` flows, trained as ``flows.train`` trains a variant (checkpoint kept), or as
+    it trains the cell itself (``flows`` None); ``share``: (which estimates of θ, all or the sun head's; their input
+    noise as a share of the others') (None: as params say)."""
     from components.posterior.store import load_npe, save_npe
     from components.posterior.train import train
     from flows.train import _calibrate_and_test, _inputs, _new_model, _run_key
 
-    done = paths.models / f"ensemble{flows}" / "model.pt"
+    name = f"ensemble{flows}" + (
+        "" if share is None else f"-{share[0]}-noise-{share[1]:g}".replace("-all-", "-estimate-")
+    )
+    done = paths.models / name / "model.pt"
     if done.is_file():
         return load_npe(done)[0]
     params = load_params(params_file)
-    name = f"ensemble{flows}"
-    variant = VariantConfig(backbone=CELL[0], size=CELL[1], balance=params.train.balance, ensemble=flows)
+    variant = (
+        VariantConfig(backbone=CELL[0], size=CELL[1], balance=params.train.balance, ensemble=flows) if flows else None
+    )
     splits, options, backbone, x, theta = _inputs(params, paths, *CELL)
-    model, flow_cfg, cfg, seed = _new_model(params, backbone, x, CELL[1], variant, f"{CELL[0]}-{CELL[1]}-{name}")
+    # a noise lever keeps the champion's model seed (its initial weights) and draws: the noise mask is the difference
+    model_id = f"{CELL[0]}-{CELL[1]}" + (f"-{name}" if share is None else "")
+    model, flow_cfg, cfg, seed = _new_model(params, backbone, x, CELL[1], variant, model_id)
+    if share is not None:
+        spared = estimates(backbone) if share[0] == "all" else backbone.spared_index()
+        cfg = dataclasses.replace(cfg, spared=spared, spared_noise=share[1])
     key = _run_key(cfg, flow_cfg, seed, splits["train"].content_hash, options, backbone)
     done.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -365,6 +423,9 @@ def build(lever: str, params_file: Path, paths: ProjectPaths, logger: logging.Lo
     elif lever in ("boundary", "more-uniform"):
         model = _train_extra(lever, extra, params_file, paths, logger)
         _export(model, paths, model_id)
+    elif lever.startswith(tuple(NOISE_LEVERS)):
+        model = _train_ensemble(params_file, paths, None, logger, share=estimate_share(lever))
+        _export(model, paths, model_id)
     else:
         flows = 4 if lever.startswith("ensemble-4") else None
         model = (
@@ -446,13 +507,21 @@ def report(rows: list[dict]) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--levers", nargs="+", default=list(LEVERS), metavar="LEVER")
+    default = [x for x in LEVERS if not x.endswith("-noise-S")]
+    parser.add_argument("--levers", nargs="+", default=default, metavar="LEVER", help="*-noise-S: S in [0, 1]")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "named_levers"))
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--extra", type=int, default=20000, help="extra training images of boundary, more-uniform")
     args = parser.parse_args()
-    if not set(args.levers) <= set(LEVERS):
-        parser.error(f"unknown levers {sorted(set(args.levers) - set(LEVERS))}; choose from {', '.join(LEVERS)}")
+    unknown = sorted(x for x in set(args.levers) - set(LEVERS) if not x.startswith(tuple(NOISE_LEVERS)))
+    if unknown:
+        parser.error(f"unknown levers {unknown}; choose from {', '.join(LEVERS)}")
+    for lever in args.levers:
+        if lever.startswith(tuple(NOISE_LEVERS)):
+            try:
+                estimate_share(lever)
+            except ValueError as e:
+                parser.error(str(e))
     torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(message)s")
     logger = logging.getLogger("named-levers")

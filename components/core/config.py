@@ -467,6 +467,12 @@ class TrainConfig(_Section):
     """no input noise for a model of fewer input features: noise regularizes many redundant features (cues 377, tiny
     256) and erases the signal of a few informative ones (the SBI problems' 2–10)
     (study: docs/studies/sbi-problems-defaults.md); such "few features" also train ``few_features_epochs``"""
+    input_noise_spared: Annotated[Real, Field(ge=0, le=1)]
+    """the input noise on the features a backbone spares (``Backbone.spared_index``: the cues' sun head, μ and log σ),
+    as a share of ``input_noise``: 1 the same as on every feature, 0 none. The sun head reads a clear sky's sun to
+    1.7° (its own σ), finer than the 5.8° of the default noise at 50 000 images, which capped the champion there;
+    sparing all fourteen of the reader's estimates instead overfits (calibration error 0.043)
+    (study: docs/studies/estimate-noise.md)"""
     few_features_epochs: PositiveInt | None
     """a model of fewer than ``input_noise_min_features`` frozen features trains at least this many epochs (still
     capped by ``sample_budget``): a few informative inputs keep improving long after the image models' ``epochs``;

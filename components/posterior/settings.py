@@ -229,12 +229,15 @@ def training_config(
     seed: int,
     balance: float | None = None,
     ensemble: int | None = None,
+    spared: tuple[int, ...] = (),
 ) -> TrainingConfig:
     """The training settings of ``train`` for a model of ``size`` training images of ``features`` input features
     (the backbone's dimension) predicting ``parameters`` dimensions of θ: :func:`epochs_for` epochs,
     :func:`input_noise_for` noise (both depend on :func:`few_features`), the batch, rate, weight decay, schedule and
     patience of :func:`recipe_for` where it applies; ``seed`` is the caller's;
-    ``balance`` and ``ensemble`` (a variant's) replace ``train.balance`` and the flows of :func:`ensemble_for`."""
+    ``balance`` and ``ensemble`` (a variant's) replace ``train.balance`` and the flows of :func:`ensemble_for`;
+    ``spared``: the features whose noise is ``train.input_noise_spared`` of the others' (the backbone's
+    ``spared_index()``; none for inputs that are not a backbone's)."""
     t = train_section
     r = recipe_for(t, size, trainable=trainable, features=features, parameters=parameters)
     rule = t if r is None else r  # where batch, rate, weight decay and schedule come from
@@ -256,6 +259,8 @@ def training_config(
                 seed=seed,
                 balance=t.balance if balance is None else balance,
                 input_noise=input_noise_for(t, size, trainable=trainable, features=features),
+                spared=() if trainable else tuple(spared),
+                spared_noise=float(t.input_noise_spared),
                 mirror=t.mirror,
                 compile=compile_for(t, size, trainable=trainable, features=features, batch_size=rule.batch_size),
             ),

@@ -70,6 +70,12 @@ class TrainingConfig:
             standard deviation (the model's ``feature_std``): x + σ·std·ε, ε ~ 𝒩(0, I), drawn anew every batch; a
             regularizer that keeps a flow trained on few simulations from trusting every feature to its last digit
             (0 = none; never at validation or inference).
+        spared: the input features (indices into the last axis, increasing) whose noise is ``spared_noise`` of
+            ``input_noise``: a backbone's estimates of θ sharper than the noise
+            (:meth:`~components.features.backbones.base.Backbone.spared_index`), whose precision the noise would cap
+            (docs/studies/estimate-noise.md).
+        spared_noise: the input noise on ``spared``, as a share of ``input_noise`` (1: the same as on every feature;
+            0: none).
         mirror: replace each training input by its mirror image's with probability ½, drawn anew every batch
             (``train``'s ``mirror`` maps a batch of inputs to those of the left-right mirrored images): the weather
             and the sun and wind azimuths (uniform) keep their law when the image is mirrored, the scenes nearly (the
@@ -97,6 +103,8 @@ class TrainingConfig:
     seed: int = 0
     balance: float = 0.0
     input_noise: float = 0.0
+    spared: tuple[int, ...] = ()
+    spared_noise: float = 1.0
     mirror: bool = False
     compile: bool = False
 
@@ -115,6 +123,7 @@ class TrainingConfig:
             ("min_delta", True),
             ("balance", True),
             ("input_noise", True),
+            ("spared_noise", True),
         ):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0 or (v == 0 and not low_ok):
@@ -131,6 +140,15 @@ class TrainingConfig:
             )
         if self.clip_norm is not None and not (isinstance(self.clip_norm, (int, float)) and self.clip_norm > 0):
             raise ValueError(f"TrainingConfig.clip_norm must be > 0 or None, got {self.clip_norm!r}")
+        free = self.spared
+        if (
+            not isinstance(free, tuple)
+            or any(isinstance(i, bool) or not isinstance(i, int) or i < 0 for i in free)
+            or list(free) != sorted(set(free))
+        ):
+            raise ValueError(
+                f"TrainingConfig.spared must be a tuple of distinct feature indices ≥ 0 in increasing order, got {free!r}"
+            )
         for name in ("mirror", "compile"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"TrainingConfig.{name} must be true or false, got {getattr(self, name)!r}")
@@ -463,6 +481,14 @@ def train(
         raise ValueError(
             "TrainingConfig.input_noise needs a model with standardization buffers (an NPE with input_shape)"
         )
+    if config.input_noise > 0 and config.spared and config.spared_noise != 1:
+        if noise_scale.ndim != 1 or config.spared[-1] >= noise_scale.shape[0]:
+            raise ValueError(
+                f"TrainingConfig.spared names feature {config.spared[-1]}, but the inputs have "
+                f"{noise_scale.shape[-1] if noise_scale.ndim else 0} features in one axis"
+            )
+        noise_scale = noise_scale.clone()
+        noise_scale[list(config.spared)] *= config.spared_noise
     if config.mirror:
         if mirror is None:
             raise ValueError("TrainingConfig.mirror needs train(..., mirror=<the inputs of the mirrored images>)")

@@ -12,6 +12,7 @@ the backbone. A backbone is a :class:`torch.nn.Module` with
 - :meth:`extract` — images → features as a float32 numpy array, batched, under inference mode;
 - :meth:`mirror_inputs` — the posterior's inputs of the left-right mirrored images (training augmentation):
   flipped model inputs for a trainable backbone, permuted features (:meth:`mirror_index`) for a frozen one;
+- :meth:`spared_index` — the features that are estimates of θ sharper than the training-input noise (spared by it);
 - :meth:`fingerprint` — a hash of name, code version, configuration and weights, stored next to
   cached features to detect stale caches.
 
@@ -142,6 +143,12 @@ class Backbone(nn.Module):
         features(image)[:, index[j]]`` (to float rounding); None where mirroring does not permute them (a learned or
         pretrained network's features). Frozen backbones with such a symmetry override it."""
         return None
+
+    def spared_index(self) -> tuple[int, ...]:
+        """The features the training-input noise spares (``train.input_noise_spared`` of its σ), in increasing order:
+        a frozen network's estimates of θ with their own σ, sharper than the noise, which would cap the precision they
+        carry (docs/studies/estimate-noise.md). ``()`` for a backbone without such features (the default)."""
+        return ()
 
     def mirror_inputs(self, inputs: torch.Tensor) -> torch.Tensor:
         """The posterior's inputs of the left-right mirrored images (``TrainingConfig.mirror``): a trainable backbone's

@@ -34,7 +34,7 @@ from components.features.backbones.weather_reader import load_reader, load_sun_h
 from components.features.backbones.wet_road import FEATURE_NAMES as _WET_ROAD_NAMES
 from components.features.backbones.wet_road import load_detector, wet_road_features
 
-__all__ = ["CuesBackbone", "FEATURE_NAMES", "MIRROR"]
+__all__ = ["CuesBackbone", "FEATURE_NAMES", "MIRROR", "SPARED"]
 
 
 _ROAD_Q = (5, 10, 25, 50, 75, 90, 95)
@@ -99,6 +99,12 @@ def _names() -> tuple[str, ...]:
 
 #: the name of every feature, in output order
 FEATURE_NAMES: tuple[str, ...] = _names()
+
+
+#: the cues the training-input noise spares: the sun head's μ and log σ, an estimate of the sun's altitude whose own σ
+#: (1.7° under a clear sky) is finer than the noise at 50 000 images (5.8°). The reader's twelve are estimates too, but
+#: spared they let the flow overfit (docs/studies/estimate-noise.md).
+SPARED: tuple[int, ...] = tuple(FEATURE_NAMES.index(name) for name in _SUN_HEAD_NAMES)
 
 
 def _mirror_partner(name: str) -> str:
@@ -362,6 +368,10 @@ class CuesBackbone(Backbone):
     def mirror_index(self) -> tuple[int, ...]:
         """:data:`MIRROR`: every region of the cues is symmetric about the vertical midline or has its mirror twin."""
         return MIRROR
+
+    def spared_index(self) -> tuple[int, ...]:
+        """:data:`SPARED`: the sun head's mean and log σ (the last two cues)."""
+        return SPARED
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """sRGB images ``(n, 3, 128, 128)`` in [0, 1] → cues ``(n, 377)`` float32 (:data:`FEATURE_NAMES`).

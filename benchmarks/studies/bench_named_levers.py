@@ -29,6 +29,9 @@ test images, the sun at ClearNoon) — the same images, draws and seeds for ever
 - ``sun-noise-S`` — the same with the share on the sun head's two columns alone (the reader's twelve keep the noise:
   :meth:`~components.features.backbones.base.Backbone.spared_index`; ``train.input_noise_spared`` is S).
 
+Beside each row, the sun at ClearNoon on ``--clear-noon-scenes`` (96) of the named weathers' scenes, split by whether
+the sun head is sure of itself there (:func:`clear_noon`): 24 scenes move the figure by 3–4° between trainings.
+
 A lever's model and its evaluation are kept under ``--out`` (a rerun reuses them). Prints the ablation table and one
 JSON line with every figure and the machine.
 
@@ -458,6 +461,54 @@ def evaluate(model_id: str, params_file: Path, paths: ProjectPaths, logger: logg
     return result
 
 
+def clear_noon(model_id: str, params_file: Path, paths: ProjectPaths, scenes: int) -> dict:
+    """The sun at ClearNoon on ``scenes`` of the named weathers' scenes (the first 24 are the evaluate stage's), 500
+    draws an image: the median |posterior median − 45°| over all and over the scenes where the sun head is sure of
+    itself (its σ below 3.3°, log σ < −4 in its units) and where it is not, the posterior's median sd there, the
+    central 68 % interval's coverage with its Clopper–Pearson interval, and the head's own error and σ (sure, unsure). Kept in ``clear_noon-<scenes>.json``."""
+    from components.core import presets, seeding
+    from components.evaluate.local import clopper_pearson
+    from components.evaluate.named import scene_seeds
+    from components.export.lookup import load_registered
+    from components.features.cache import posterior_inputs
+    from components.simulate.base import make_simulator
+
+    kept = paths.registry / model_id / f"clear_noon-{scenes}.json"
+    if kept.is_file():
+        return json.loads(kept.read_text())
+    params = load_params(params_file)
+    model = load_registered(model_id, paths.registry)
+    images_file = paths.root / f"clear_noon-{scenes}.npz"
+    if not images_file.is_file():
+        simulator = make_simulator(params.simulator)
+        seeds = scene_seeds(params.seed, "ClearNoon", scenes)
+        images = np.stack([simulator.render(presets.preset_weather("ClearNoon"), s) for s in seeds])
+        np.savez(images_file, images=images)
+    x = posterior_inputs(model.backbone, np.load(images_file)["images"])
+    draws = model.posterior.sample(x, 500, seeding.derive_seed(params.seed, "clear-noon", scenes))[:, :, 3]
+    error, sd = np.abs(np.median(draws, axis=1) - 45.0), draws.std(axis=1)
+    lo, hi = np.percentile(draws, [15.865, 84.135], axis=1)
+    covered = int(((lo <= 45.0) & (45.0 <= hi)).sum())
+    sure = x[:, model.backbone.dim - 1] < -4.0  # the sun head's log σ (last cue; units of the altitude's range)
+    ci = clopper_pearson(np.array([covered]), scenes)
+    # the head's own guess and σ in degrees (its units: the altitude's range, 180°, from −90°)
+    head, head_sd = x[:, -2] * 180.0 - 90.0, np.exp(x[:, -1]) * 180.0
+    out = {
+        "head_median_abs_error": [float(np.median(np.abs(head[m] - 45.0))) for m in (sure, ~sure)],
+        "head_median_sd": [float(np.median(head_sd[m])) for m in (sure, ~sure)],
+        "scenes": scenes,
+        "median_abs_error": float(np.median(error)),
+        "sure": int(sure.sum()),
+        "median_abs_error_sure": float(np.median(error[sure])),
+        "median_sd_sure": float(np.median(sd[sure])),
+        "median_abs_error_unsure": float(np.median(error[~sure])),
+        "coverage68": covered / scenes,
+        "ci68": [float(ci[0][0]), float(ci[1][0])],
+    }
+    kept.write_text(json.dumps(out))
+    return out
+
+
 def row(lever: str, result: dict) -> dict:
     """One line of the ablation: the average figures and the named weathers'."""
     m, local = result["metrics"], result["local"]
@@ -490,9 +541,10 @@ def report(rows: list[dict]) -> None:
     print(
         "| lever | nats | calibration (band) | cells − · + | pooled 68 % coverage "
         + "/".join(short)
-        + " | joint L-C2ST named (p) | test (p) | params p ≤ 0.05 at named | ClearNoon sun |"
+        + " | joint L-C2ST named (p) | test (p) | params p ≤ 0.05 at named | ClearNoon sun | the same, more scenes: "
+        + "all · head sure (posterior sd) · unsure | its 68 % coverage [95 % CP] |"
     )
-    print("|---|---:|---:|---:|---|---:|---:|---|---:|")
+    print("|---|---:|---:|---:|---|---:|---:|---|---:|---|---|")
     for r in rows:
         cov = " ".join(f"{v:.2f}" for v in r["pooled68"].values())
         rejected = [s for s, (k, v) in zip(short, list(r["lc2st_named"].items())[1:], strict=True) if v[1] <= 0.05]
@@ -501,8 +553,20 @@ def report(rows: list[dict]) -> None:
             f"| {r['lever']} | {r['info_gain_nats']:.2f} ± {r['test_nll_se']:.2f} | {r['calibration_error']:.3f} "
             f"({r['calibration_band']:.3f}) | {r['cells_below']} · {r['cells_above']} of {r['cells']} | {cov} | "
             f"{jn[0]:.3f} ({jn[1]:.3f}) | {jt[0]:.3f} ({jt[1]:.3f}) | {', '.join(rejected) or '—'} | "
-            f"{r['clear_noon_sun']:.2f}° |"
+            f"{r['clear_noon_sun']:.2f}° | {more_scenes(r)} |"
         )
+
+
+def more_scenes(r: dict) -> str:
+    """The cells of :func:`clear_noon`'s figures in the table (empty where not measured)."""
+    c = r.get("clear_noon_more")
+    if c is None:
+        return " |"
+    return (
+        f"{c['median_abs_error']:.2f}° ({c['scenes']}) · {c['median_abs_error_sure']:.2f}° ({c['median_sd_sure']:.1f}°; "
+        f"{c['sure']}) · {c['median_abs_error_unsure']:.2f}° | {c['coverage68']:.2f} [{c['ci68'][0]:.2f}, "
+        f"{c['ci68'][1]:.2f}]"
+    )
 
 
 def main() -> None:
@@ -512,7 +576,10 @@ def main() -> None:
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "named_levers"))
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--extra", type=int, default=20000, help="extra training images of boundary, more-uniform")
+    parser.add_argument("--clear-noon-scenes", type=int, default=96, help="ClearNoon's scenes for the sun (0: none)")
     args = parser.parse_args()
+    if args.clear_noon_scenes < 0:
+        parser.error(f"--clear-noon-scenes must be ≥ 0, got {args.clear_noon_scenes}")
     unknown = sorted(x for x in set(args.levers) - set(LEVERS) if not x.startswith(tuple(NOISE_LEVERS)))
     if unknown:
         parser.error(f"unknown levers {unknown}; choose from {', '.join(LEVERS)}")
@@ -532,6 +599,8 @@ def main() -> None:
     for lever in args.levers:
         notes[lever] = build(lever, params_file, paths, logger, args.extra)
         rows.append(row(lever, evaluate(notes[lever]["model"], params_file, paths, logger)))
+        if args.clear_noon_scenes:
+            rows[-1]["clear_noon_more"] = clear_noon(notes[lever]["model"], params_file, paths, args.clear_noon_scenes)
     report(rows)
     from benchmarks.machine import machine_info
 

@@ -172,36 +172,20 @@ def test_characterize_a_folder_with_bad_images(world, capsys, tmp_path):
         for j, name in enumerate(NAMES):
             assert rows[name]["median"] == pytest.approx(np.median(draws[name]), abs=0.006)
             assert (rows[name]["low"], rows[name]["high"]) == pytest.approx((low[j], high[j]), abs=0.006)
-    # same seed, same numbers; another seed, other draws
-    assert (
-        run(
-            capsys,
-            "characterize",
-            world["mixed"] / "000.png",
-            "--registry",
-            world["registry"],
-            "--model",
-            "cues-tiny",
-            "--samples",
-            300,
-            "--seed",
-            5,
-        )[1]
-        == out.split("\n\n")[0] + "\n\n"
+
+    # same seed, same numbers (to the printed digit: an image's cues alone and in a batch differ by ~1e-7, the wet-road
+    # block's convolutions, which can flip a last printed digit); another seed, other draws
+    def alone(seed: int) -> str:
+        args = ("--registry", world["registry"], "--model", "cues-tiny", "--samples", 300, "--seed", seed)
+        return run(capsys, "characterize", world["mixed"] / "000.png", *args)[1]
+
+    first, number = out.split("\n\n")[0] + "\n\n", r"-?\d+\.\d+"
+    same = alone(5)
+    assert re.sub(number, "#", same) == re.sub(number, "#", first)
+    assert np.allclose(
+        [float(v) for v in re.findall(number, same)], [float(v) for v in re.findall(number, first)], atol=0.011
     )
-    other = run(
-        capsys,
-        "characterize",
-        world["mixed"] / "000.png",
-        "--registry",
-        world["registry"],
-        "--model",
-        "cues-tiny",
-        "--samples",
-        300,
-        "--seed",
-        6,
-    )[1]
+    other = alone(6)
     assert other != out.split("\n\n")[0] + "\n\n"
 
 
